@@ -1,0 +1,31 @@
+# Set-up and the two entry points shown in README.md.
+#   make validate   -> the main job: `hemicube validate` on the embedded default rig and sample
+#   make test       -> the test suite (what CI runs through .ci/run)
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+# torch first, so that pip never resolves a bare `torch` to a multi-GB CUDA build on a CPU machine:
+# torch==2.13.0 is the CPU file on disk on our machines and the regular PyPI build elsewhere.
+# Override with `make TORCH_SPEC="torch==2.x" setup`; an existing torch is never replaced.
+TORCH_SPEC ?= torch==2.13.0
+
+export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
+export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
+export MPLBACKEND ?= Agg
+export DRJIT_CACHE_DIR ?= $(CURDIR)/.cache/drjit
+
+.PHONY: setup validate test
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q "$(TORCH_SPEC)"
+	$(BIN)/python -m pip install -q -e ".[dev]"
+	touch $@
+
+validate: setup
+	$(BIN)/hemicube validate
+
+test: setup
+	$(BIN)/python -m pytest -q $(PYTEST_ARGS)

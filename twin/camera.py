@@ -1,0 +1,161 @@
+"""Pinhole camera with OpenCV's 5-coefficient distortion model (Brown-Conrady: k1, k2, p1, p2, k3).
+
+Frames and pixel conventions are those of `twin.units`. The projection is checked against
+`cv2.projectPoints` in the tests.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Per-camera sensor parameters, used by the virtual capture (kept in the rig so that a rig file
+    fully describes the device). Defaults describe a Sony IMX540-class sensor as in the Basler
+    a2A5328-15ucPRO (paper §5); they are assumptions, not released calibration."""
+
+    bit_depth: int = 12
+    bayer: str = "RG"  # colour filter layout of the top-left 2x2 cell (GenICam BayerRG)
+    pixel_pitch_um: float = 2.74
+    gain_e_per_dn: float = 2.4  # electrons per digital number at gain 0 dB
+    full_well_e: float = 9800.0
+    read_noise_e: float = 2.3
+    dark_current_e_per_s: float = 0.6
+    prnu: float = 0.005  # photo-response non-uniformity, relative sigma
+    dsnu_e: float = 0.3  # dark-signal non-uniformity, sigma in electrons
+    black_level_dn: float = 16.0
+    vignetting: tuple[float, float, float] = (0.0, 0.0, 0.0)  # radial: 1 + a r^2 + b r^4 + c r^6, r normalised
+    crosstalk: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    def __post_init__(self):
+        if self.bit_depth not in (8, 10, 12, 16):
+            raise ValueError(f"sensor bit_depth must be 8, 10, 12 or 16, got {self.bit_depth}")
+        if self.bayer not in ("RG", "GR", "GB", "BG"):
+            raise ValueError(f"sensor bayer must be one of RG, GR, GB, BG, got {self.bayer!r}")
+        for name in ("pixel_pitch_um", "gain_e_per_dn", "full_well_e"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"sensor {name} must be a positive finite number, got {v}")
+        for name in ("read_noise_e", "dark_current_e_per_s", "prnu", "dsnu_e", "black_level_dn"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"sensor {name} must be finite and >= 0, got {v}")
+        if len(self.vignetting) != 3 or not np.all(np.isfinite(self.vignetting)):
+            raise ValueError("sensor vignetting must be 3 finite coefficients (a, b, c)")
+        m = np.asarray(self.crosstalk, dtype=float)
+        if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+            raise ValueError("sensor crosstalk must be a finite 3x3 matrix (LED RGB -> camera RGB)")
+
+
+def _frozen(a, dtype=np.float64):
+    a = np.array(a, dtype=dtype)
+    a.flags.writeable = False
+    return a
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A calibrated camera. K (3x3), dist (5,), R|t world->camera (OpenCV), resolution in pixels."""
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    sensor: SensorParams = field(default_factory=SensorParams)
+    assumed: bool = False  # True when the calibration is derived, not released (e.g. the 45 deg camera)
+    note: str = ""
+
+    def __post_init__(self):
+        object.__setattr__(self, "K", _frozen(self.K))
+        object.__setattr__(self, "dist", _frozen(np.ravel(self.dist)))
+        object.__setattr__(self, "R", _frozen(self.R))
+        object.__setattr__(self, "t", _frozen(np.ravel(self.t)))
+
+    # --- geometry -----------------------------------------------------------------------------
+    @property
+    def centre(self) -> np.ndarray:
+        """Camera centre in world coordinates, C = -R^T t."""
+        return -self.R.T @ self.t
+
+    @property
+    def optical_axis(self) -> np.ndarray:
+        """Viewing direction (camera +z) in world coordinates."""
+        return self.R[2].copy()
+
+    def world_to_camera(self, X: np.ndarray) -> np.ndarray:
+        return np.asarray(X, dtype=np.float64) @ self.R.T + self.t
+
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Apply OpenCV's distortion to normalised image coordinates (N, 2)."""
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xy[..., 0], xy[..., 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.stack([xd, yd], axis=-1)
+
+    def undistort(self, xy_d: np.ndarray, iterations: int = 20) -> np.ndarray:
+        """Invert `distort` by fixed-point iteration (as cv2.undistortPoints does)."""
+        k1, k2, p1, p2, k3 = self.dist
+        xy = np.array(xy_d, dtype=np.float64)
+        for _ in range(iterations):
+            x, y = xy[..., 0], xy[..., 1]
+            r2 = x * x + y * y
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            xy = np.stack([(xy_d[..., 0] - dx) / radial, (xy_d[..., 1] - dy) / radial], axis=-1)
+        return xy
+
+    def project(self, X: np.ndarray, distort: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) -> pixels (N, 2) and depth along the optical axis (N,)."""
+        Xc = self.world_to_camera(np.atleast_2d(X))
+        z = Xc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = Xc[:, :2] / z[:, None]
+        if distort:
+            xy = self.distort(xy)
+        uv = xy @ self.K[:2, :2].T + self.K[:2, 2]
+        return uv, z
+
+    def pixel_rays(self, uv: np.ndarray, distorted: bool = True) -> np.ndarray:
+        """Unit world-space ray directions through pixels (N, 2)."""
+        uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
+        xy = (uv - self.K[:2, 2]) @ np.linalg.inv(self.K[:2, :2]).T
+        if distorted:
+            xy = self.undistort(xy)
+        d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ self.R
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def resized(self, factor: float, name: str | None = None) -> "Camera":
+        """The same camera with the image scaled by `factor` (0.5 = 2x2 binning). Pixel centres follow
+        OpenCV's convention, so c' = (c + 0.5) * factor - 0.5."""
+        w, h = self.width * factor, self.height * factor
+        if abs(w - round(w)) > 1e-9 or abs(h - round(h)) > 1e-9:
+            raise ValueError(f"resizing {self.width}x{self.height} by {factor} does not give whole pixels")
+        K = self.K.copy()
+        K[0, 0] *= factor
+        K[1, 1] *= factor
+        K[0, 1] *= factor
+        K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
+        return replace(self, name=name or self.name, width=int(round(w)), height=int(round(h)), K=K)
+
+    @staticmethod
+    def look_at(name, centre, target, up_hint, K, width, height, dist=(0, 0, 0, 0, 0), **kw) -> "Camera":
+        """Build R|t for a camera at `centre` looking at `target`; camera +x is `up_hint` made orthogonal
+        to the view direction (the image columns run along it)."""
+        centre = np.asarray(centre, float)
+        z = np.asarray(target, float) - centre
+        z /= np.linalg.norm(z)
+        x = np.asarray(up_hint, float) - np.dot(up_hint, z) * z
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        return Camera(name, width, height, K, dist, R, -R @ centre, **kw)
