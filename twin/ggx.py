@@ -125,15 +125,15 @@ def fresnel_dielectric(c: float, eta: float):
     """Exact unpolarised Fresnel reflectance (Walter et al. 2007 eq. 22, in its rs/rp form) for light
     arriving from outside at cosθ = c ≥ 0 onto a dielectric of relative IOR η = n_inside / n_outside.
     Total internal reflection (possible for η < 1) gives 1; η = 1 (index matched) gives 0."""
-    c = wp.clamp(c, 0.0, 1.0)
+    ci = wp.clamp(c, 0.0, 1.0)
     if eta == 1.0:
         return 0.0
-    sin2_t = (1.0 - c * c) / (eta * eta)  # Snell
+    sin2_t = (1.0 - ci * ci) / (eta * eta)  # Snell
     if sin2_t >= 1.0:
         return 1.0
     ct = wp.sqrt(1.0 - sin2_t)
-    rs = (c - eta * ct) / wp.max(c + eta * ct, _TINY)
-    rp = (eta * c - ct) / wp.max(eta * c + ct, _TINY)
+    rs = (ci - eta * ct) / wp.max(ci + eta * ct, _TINY)
+    rp = (eta * ci - ct) / wp.max(eta * ci + ct, _TINY)
     return 0.5 * (rs * rs + rp * rp)
 
 
@@ -239,6 +239,13 @@ def _terms_kernel(wi: wp.array(dtype=wp.vec3), wo: wp.array(dtype=wp.vec3),
     fs_out[i] = ggx_specular(a, b, ax, ay, g_mode, f_mode, eta, eps)
 
 
+@wp.kernel
+def _to_local_kernel(v: wp.array(dtype=wp.vec3), normal: wp.array(dtype=wp.vec3),
+                     tangent: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = local_frame(normal[i], tangent[i]) * v[i]
+
+
 # --------------------------------------------------------------------------------------------
 # numpy-facing API
 
@@ -340,3 +347,17 @@ def specular_terms(wi_loc, wo_loc, ax, ay, *, g: str = "separable", fresnel: str
                   inputs=[_wp(wi_loc, wp.vec3, device), _wp(wo_loc, wp.vec3, device), _wp(ax, float, device),
                           _wp(ay, float, device), g_mode, f_mode, eta, eps, *outs.values()])
     return {k: v.numpy() for k, v in outs.items()}
+
+
+def to_local(v, normal, tangent, *, device: str = "cpu") -> np.ndarray:
+    """(N, 3) world vectors → local (t', b, n) coordinates through `local_frame` (for tests and tools).
+    Unlike `brdf`, a tangent parallel to the normal is accepted: the frame then uses a fallback tangent."""
+    v = _vectors("v", v, None)
+    n = v.shape[0]
+    normal, tangent = _vectors("normal", normal, n), _vectors("tangent", tangent, n)
+    wp.init()
+    out = wp.zeros(n, dtype=wp.vec3, device=device)
+    if n > 0:
+        wp.launch(_to_local_kernel, dim=n, device=device,
+                  inputs=[_wp(v, wp.vec3, device), _wp(normal, wp.vec3, device), _wp(tangent, wp.vec3, device), out])
+    return out.numpy()

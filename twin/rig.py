@@ -265,10 +265,12 @@ class Rig:
             raise KeyError(f"rig {self.name!r} has no camera {name!r}; it has {list(self.cameras)}") from None
 
     def digest(self) -> str:
-        """sha256 of the rig's canonical serialisation (used in capture manifests)."""
-        from .rig_format import canonical_bytes
+        """sha256 of the rig's canonical serialisation (used in capture manifests and as a cache key)."""
+        if "_digest" not in self.__dict__:  # immutable, so computed once; bypasses the frozen __setattr__
+            from .rig_format import canonical_bytes
 
-        return hashlib.sha256(canonical_bytes(self)).hexdigest()
+            self.__dict__["_digest"] = hashlib.sha256(canonical_bytes(self)).hexdigest()
+        return self.__dict__["_digest"]
 
     def summary(self) -> dict:
         """What `hemicube rig info` prints."""

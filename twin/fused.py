@@ -1,0 +1,92 @@
+"""Fused pattern measurements: B[p, k] = sum_l W[k, l] m[p, l] without ever storing the lumitexels.
+
+CUDA: `fused_tile_kernel`. A block of BLOCK_THREADS threads owns TILE_P points. For each chunk of
+TILE_L LEDs its threads evaluate the TILE_P x TILE_L responses (Eq. 1) into shared-memory tiles, one per
+colour channel, and `wp.tile_matmul` accumulates them against the chunk's TILE_L x TILE_K pattern tile
+(cuBLASDx). Lumitexels live only as one shared tile per block; patterns stream through shared memory.
+Patterns are processed TILE_K at a time (more patterns = more launches over the same points).
+
+CPU: Warp's CPU backend runs one thread per block (block_dim 1), so the tiled mapping does not apply;
+`fused_loop_kernel` accumulates each point's row LED by LED, which stays in cache.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .lumitexel import Options, fused_loop_kernel, led_response, view_dir
+
+TILE_P = 32
+TILE_L = 32
+TILE_K = 64
+BLOCK_THREADS = 128
+_PER_THREAD = TILE_P * TILE_L // BLOCK_THREADS
+
+
+@wp.kernel
+def fused_tile_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
+                      rho_d: wp.array(dtype=wp.vec3), rho_s: wp.array(dtype=wp.vec3), ax: wp.array(dtype=float),
+                      ay: wp.array(dtype=float), beta: wp.array(dtype=float), cam: wp.array(dtype=wp.vec3),
+                      lpos: wp.array(dtype=wp.vec3), lnrm: wp.array(dtype=wp.vec3), lu: wp.array(dtype=wp.vec3),
+                      lint: wp.array(dtype=wp.vec3), prof: wp.array2d(dtype=float), lbot: wp.array(dtype=wp.int32),
+                      o: Options, num_leds: int,
+                      w_r: wp.array2d(dtype=float), w_g: wp.array2d(dtype=float), w_b: wp.array2d(dtype=float),
+                      out_r: wp.array2d(dtype=float), out_g: wp.array2d(dtype=float),
+                      out_b: wp.array2d(dtype=float)):
+    blk, lane = wp.tid()
+    p0 = blk * TILE_P
+    num_points = pos.shape[0]
+    acc_r = wp.tile_zeros(shape=(TILE_P, TILE_K), dtype=float)
+    acc_g = wp.tile_zeros(shape=(TILE_P, TILE_K), dtype=float)
+    acc_b = wp.tile_zeros(shape=(TILE_P, TILE_K), dtype=float)
+    m_r = wp.tile_zeros(shape=(TILE_P, TILE_L), dtype=float, storage="shared")
+    m_g = wp.tile_zeros(shape=(TILE_P, TILE_L), dtype=float, storage="shared")
+    m_b = wp.tile_zeros(shape=(TILE_P, TILE_L), dtype=float, storage="shared")
+    flat_r = wp.tile_reshape(m_r, shape=(TILE_P * TILE_L,))
+    flat_g = wp.tile_reshape(m_g, shape=(TILE_P * TILE_L,))
+    flat_b = wp.tile_reshape(m_b, shape=(TILE_P * TILE_L,))
+    for chunk in range((num_leds + TILE_L - 1) // TILE_L):
+        l0 = chunk * TILE_L
+        for j in range(_PER_THREAD):
+            e = j * BLOCK_THREADS + lane
+            p = p0 + e // TILE_L
+            l = l0 + e % TILE_L
+            val = wp.vec3(0.0)
+            if p < num_points and l < num_leds:
+                x = pos[p]
+                val = led_response(x, nrm[p], tan[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p],
+                                   view_dir(cam[0], x), lpos[l], lnrm[l], lu[l], lint[l], prof, l, lbot[l], o)
+            wp.tile_assign(flat_r, wp.tile(val[0]), offset=(j * BLOCK_THREADS,))
+            wp.tile_assign(flat_g, wp.tile(val[1]), offset=(j * BLOCK_THREADS,))
+            wp.tile_assign(flat_b, wp.tile(val[2]), offset=(j * BLOCK_THREADS,))
+        wp.tile_matmul(m_r, wp.tile_load(w_r, shape=(TILE_L, TILE_K), offset=(l0, 0)), acc_r)
+        wp.tile_matmul(m_g, wp.tile_load(w_g, shape=(TILE_L, TILE_K), offset=(l0, 0)), acc_g)
+        wp.tile_matmul(m_b, wp.tile_load(w_b, shape=(TILE_L, TILE_K), offset=(l0, 0)), acc_b)
+    wp.tile_store(out_r, acc_r, offset=(p0, 0))
+    wp.tile_store(out_g, acc_g, offset=(p0, 0))
+    wp.tile_store(out_b, acc_b, offset=(p0, 0))
+
+
+def fused_measurements(wpts, cam, leds, o: Options, w: np.ndarray, out: wp.array, device) -> None:
+    """Fill `out` (P, K) vec3 with the pattern measurements; `w` is (K, L, 3) numpy."""
+    dev = wp.get_device(device)
+    Kn, L = w.shape[0], w.shape[1]
+    P = wpts[0].shape[0]
+    if not dev.is_cuda or wpts[0].dtype != wp.vec3f:
+        W = wp.array(w, dtype=out.dtype, device=device)
+        wp.launch(fused_loop_kernel, dim=P, inputs=[*wpts, cam, *leds, o, W], outputs=[out], device=device)
+        return
+    L_pad = -(-L // TILE_L) * TILE_L
+    P_pad = -(-P // TILE_P) * TILE_P
+    result = np.zeros((P, Kn, 3), np.float32)
+    for k0 in range(0, Kn, TILE_K):
+        kk = min(TILE_K, Kn - k0)
+        wc = np.zeros((3, L_pad, TILE_K), np.float32)  # channel-major, LED rows, zero-padded
+        wc[:, :L, :kk] = w[k0:k0 + kk].transpose(2, 1, 0)
+        ws = [wp.array(wc[c], dtype=float, device=device) for c in range(3)]
+        outs = [wp.zeros((P_pad, TILE_K), dtype=float, device=device) for _ in range(3)]
+        wp.launch_tiled(fused_tile_kernel, dim=[P_pad // TILE_P], inputs=[*wpts, cam, *leds, o, L, *ws],
+                        outputs=outs, block_dim=BLOCK_THREADS, device=device)
+        for c in range(3):
+            result[:, k0:k0 + kk, c] = outs[c].numpy()[:P, :kk]
+    out.assign(wp.array(result, dtype=wp.vec3f, device=device))

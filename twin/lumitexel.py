@@ -1,0 +1,138 @@
+"""Warp kernels for lumitexels (paper Eq. 1-2) and pattern measurements.
+
+One function, `led_response`, evaluates Eq. 1 for one surface point and one LED:
+
+    m[c] = S * I_l[c] * A_l(-wi) * V(l, p) * f_c(wi, wo) * (wi . n)+ / r^2          (upper LEDs)
+    m[c] = S * I_l[c] * A_l(-wi) * V(l, p) * T_acrylic * beta / pi * (-wi . z)+ / r^2  (bottom LEDs)
+
+with A_l = Psi_l * (-wi . n_l)+ (twin.emitter). Bottom LEDs light the sample from below through the
+diffusing acrylic board and the sample's transparency beta; both diffuse, so the transmitted radiance is
+Lambertian (1/pi) and independent of the view and of the shading normal (the geometric plane normal z
+sets the irradiance cosine). Refraction in the thin slab is neglected. Every kernel is generic over
+float32 / float64 (float64 for gradient checks) and is defined at import time.
+
+Kernels:
+  * lumitexel_kernel   (P, L)  materialises m[p, l]           (training data; differentiable)
+  * project_kernel     (P, K)  B[p, k] = sum_l W[k, l] m[p, l] (differentiable w.r.t. m and W)
+  * fused_loop_kernel  (P,)    B without storing m: portable loop, used on CPU
+  * fused_tile_kernel  blocks  B without storing m: tiles in shared memory + tile_matmul, used on CUDA
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from .emitter import led_intensity
+from .ggx import ggx_brdf, local_frame
+
+
+@wp.struct
+class Options:
+    """Convention constants (twin.forward.CONVENTIONS), float32; kernels cast them to their float type."""
+
+    g_mode: int
+    f_mode: int
+    profile_mode: int
+    eta: float
+    eps: float  # the authors' BRDF regulariser (1e-6) or 0
+    length_scale: float  # rig unit -> unit of r in 1/r^2 (1e-3: mm -> m; 1: mm)
+    r2_eps: float  # added to r^2 (the authors' 1e-6)
+    min_cos_i: float  # (wi . n) below this gives 0 (the authors' 1e-6)
+    scale: float  # overall constant S
+    use_bottom: int  # bottom LEDs transmit through the acrylic (physical) or give 0 (OpenSVBRDF)
+    acrylic_transmission: float
+    plane_normal: wp.vec3
+    use_visibility: int
+    mesh: wp.uint64
+    ray_offset: float  # start visibility rays this far (rig units) off the surface
+
+
+@wp.func
+def visible(mesh: wp.uint64, x: wp.vec3, wi: wp.vec3, r: float, offset: float):
+    """V(l, p): 1 when the segment from the point to the LED misses every occluder mesh."""
+    q = wp.mesh_query_ray(mesh, x + wi * offset, wi, r - offset)
+    return not q.result
+
+
+@wp.func
+def led_response(x: Any, n: Any, t: Any, rho_d: Any, rho_s: Any, ax: Any, ay: Any, beta: Any, wo: Any,
+                 lp: Any, ln: Any, lu: Any, li: Any, prof: wp.array2d(dtype=Any), l: int, bottom: int,
+                 o: Options):
+    """Eq. 1 for one point and one LED (see module docstring); returns an RGB vector."""
+    zero = ax * type(ax)(0.0)
+    d = lp - x
+    r2 = wp.dot(d, d)
+    r = wp.sqrt(r2)
+    wi = d / r
+    a = led_intensity(-wi, ln, lu, prof, l, o.profile_mode)
+    if a <= zero:
+        return type(wi)(zero, zero, zero)
+    ls = type(ax)(o.length_scale)
+    inv_r2 = type(ax)(1.0) / (r2 * ls * ls + type(ax)(o.r2_eps))
+    if bottom != 0:
+        c = -wp.dot(wi, type(wi)(o.plane_normal))
+        if o.use_bottom == 0 or c <= zero:
+            return type(wi)(zero, zero, zero)
+        k = type(ax)(o.acrylic_transmission) * beta * type(ax)(0.3183098861837907) * a * c * inv_r2
+        val = wp.cw_mul(li, type(li)(k, k, k))
+    else:
+        frame = local_frame(n, t)
+        wi_l = frame * wi
+        if wi_l[2] < type(ax)(o.min_cos_i) or wi_l[2] <= zero:
+            return type(wi)(zero, zero, zero)
+        f = ggx_brdf(wi_l, frame * wo, rho_d, rho_s, ax, ay, o.g_mode, o.f_mode, type(ax)(o.eta),
+                     type(ax)(o.eps))
+        val = wp.cw_mul(li, f) * (a * wi_l[2] * inv_r2)
+    if o.use_visibility != 0:
+        if not visible(o.mesh, wp.vec3(x), wp.vec3(wi), float(r), o.ray_offset):
+            return type(wi)(zero, zero, zero)
+    return val * type(ax)(o.scale)
+
+
+@wp.func
+def view_dir(cam: Any, x: Any):
+    return wp.normalize(cam - x)
+
+
+@wp.kernel
+def lumitexel_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp.array(dtype=Any),
+                     rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any), ax: wp.array(dtype=Any),
+                     ay: wp.array(dtype=Any), beta: wp.array(dtype=Any), cam: wp.array(dtype=Any),
+                     lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
+                     lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
+                     o: Options, out: wp.array2d(dtype=Any)):
+    p, l = wp.tid()
+    x = pos[p]
+    out[p, l] = led_response(x, nrm[p], tan[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p], view_dir(cam[0], x),
+                             lpos[l], lnrm[l], lu[l], lint[l], prof, l, lbot[l], o)
+
+
+@wp.kernel
+def project_kernel(m: wp.array2d(dtype=Any), w: wp.array2d(dtype=Any), out: wp.array2d(dtype=Any)):
+    """B[p, k] = sum_l W[k, l] (.) m[p, l], channel-wise (paper Eq. 2)."""
+    p, k = wp.tid()
+    acc = out[p, k] * out.dtype.dtype(0.0)  # dtype-correct zero
+    for l in range(m.shape[1]):
+        acc += wp.cw_mul(w[k, l], m[p, l])
+    out[p, k] = acc
+
+
+@wp.kernel
+def fused_loop_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp.array(dtype=Any),
+                      rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any), ax: wp.array(dtype=Any),
+                      ay: wp.array(dtype=Any), beta: wp.array(dtype=Any), cam: wp.array(dtype=Any),
+                      lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
+                      lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
+                      o: Options, w: wp.array2d(dtype=Any), out: wp.array2d(dtype=Any)):
+    """One thread per point: B[p, :] accumulated LED by LED, the lumitexel never stored. The row
+    out[p, :] stays in the CPU's cache; on CUDA fused_tile_kernel is used instead."""
+    p = wp.tid()
+    x = pos[p]
+    wo = view_dir(cam[0], x)
+    for l in range(lpos.shape[0]):
+        m = led_response(x, nrm[p], tan[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p], wo, lpos[l], lnrm[l],
+                         lu[l], lint[l], prof, l, lbot[l], o)
+        if wp.length_sq(m) > ax[p] * type(ax[p])(0.0):
+            for k in range(w.shape[0]):
+                out[p, k] = out[p, k] + wp.cw_mul(w[k, l], m)
