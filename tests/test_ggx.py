@@ -3,6 +3,7 @@ closed forms (Schlick, Lambert, Heitz 2014 inequalities) and numerical integrals
 of the visible normals, directional albedo). Every kernel test runs on every available Warp device."""
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -346,6 +347,10 @@ def _edge_directions():
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_finite_everywhere_and_zero_below_horizon(device):
+    _check_finite_everywhere(device, "float32")
+
+
+def _check_finite_everywhere(device, dtype):
     d = _edge_directions()
     m = len(d)
     i, o = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
@@ -359,8 +364,9 @@ def test_finite_everywhere_and_zero_below_horizon(device):
             for g in ("separable", "height-correlated"):
                 for fres in ("schlick", "dielectric"):
                     for eps in (0.0, 1e-6):
-                        kw = dict(g=g, fresnel=fres, eps=eps, device=device)
+                        kw = dict(g=g, fresnel=fres, eps=eps, device=device, dtype=dtype)
                         f = ggx.brdf(wi, wo, nrm, tan, ones, 10 * ones, np.full(n, ax), np.full(n, ay), **kw)
+                        assert f.dtype == np.dtype(dtype)
                         assert np.all(np.isfinite(f)) and np.all(f >= 0)
                         assert np.all(f[below] == 0)
                         t = _terms(wi, wo, ax, ay, **kw)
@@ -452,3 +458,295 @@ def test_brdf_good_input_and_empty(device):
     assert f.shape == (4, 3) and f.dtype == np.float32 and np.all(f > 0.5 / math.pi)
     e = {k: v[:0] for k, v in _good().items()}
     assert ggx.brdf(**e, device=device).shape == (0, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. float64: the same generic @wp.func's instantiated with wp.float64 / wp.vec3d / wp.mat33d
+
+
+def _np_d(h, ax, ay):
+    """Anisotropic GGX D in float64, textbook form (Walter et al. 2007 eq. 33; Heitz 2014 eq. 85)."""
+    s = h[:, 0] ** 2 / ax**2 + h[:, 1] ** 2 / ay**2 + h[:, 2] ** 2
+    return np.where(h[:, 2] > 0, 1 / (np.pi * ax * ay * s**2), 0.0)
+
+
+def _np_lambda(v, ax, ay):
+    """Smith Λ in float64, textbook form (Heitz 2014 eq. 86): (−1 + sqrt(1 + (αx²vx² + αy²vy²)/vz²)) / 2."""
+    return (-1 + np.sqrt(1 + (ax**2 * v[:, 0] ** 2 + ay**2 * v[:, 1] ** 2) / v[:, 2] ** 2)) / 2
+
+
+def _np_fresnel_dielectric(c, eta):
+    """Walter et al. 2007 eq. 22 in its own (g, c) form, not the rs/rp form the kernel uses:
+    F = ½ (g−c)²/(g+c)² (1 + ((c(g+c) − 1)/(c(g−c) + 1))²), g² = η² − 1 + c²; g² < 0 is total
+    internal reflection (F = 1)."""
+    g2 = eta**2 - 1 + c**2
+    g = np.sqrt(np.maximum(g2, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = 0.5 * (g - c) ** 2 / (g + c) ** 2 * (1 + ((c * (g + c) - 1) / (c * (g - c) + 1)) ** 2)
+    return np.where(g2 < 0, 1.0, f)
+
+
+def _pairs(rng, n, zmin, dtype=np.float64):
+    wi, wo = _hemisphere(rng, n, zmin), _hemisphere(rng, n, zmin)
+    m = min(len(wi), len(wo))
+    return wi[:m].astype(dtype), wo[:m].astype(dtype)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("g", ["separable", "height-correlated"])
+@pytest.mark.parametrize("fres,eta", [("schlick", 1.5), ("dielectric", 1.5), ("dielectric", 1 / 1.33),
+                                      ("dielectric", 1.0)])
+def test_float64_matches_float64_closed_forms(device, g, fres, eta):
+    """Mitsuba's scalar variants are float32, so they bound our float32 D/G1/G only to ~1e-6 (section 1).
+    In float64 we compare against textbook float64 closed forms, written differently from the kernel's
+    cancellation-free forms, at 1e-12: a wrong constant, a float32 literal or a float32 round trip
+    anywhere in the float64 path (≥ 6e-8 relative) cannot pass."""
+    rng = np.random.default_rng(12)
+    # float32-rounded directions (as in the other sections) but no longer unit in float64: the closed
+    # forms below do not assume |v| = 1 except D (h is normalised here as in the kernel).
+    wi, wo = _pairs(rng, 1000, 0.0)
+    wi = np.concatenate([wi, [[0, 0, 1], [1e-3, 0, 1]]])  # normal incidence (Λ = 0), near normal
+    wo = np.concatenate([wo, [[0.6, 0, 0.8], [0, 0.6, 0.8]]])
+    n = len(wi)
+    for ax, ay in ALPHAS:
+        t = _terms(wi, wo, ax, ay, device, g=g, fresnel=fres, eta=eta, dtype="float64")
+        assert all(v.dtype == np.float64 for v in t.values())
+        s = wi + wo
+        h = s / np.linalg.norm(s, axis=1, keepdims=True)
+        # h: one normalisation, a few ulp. D is computed from our own numpy h, not the kernel's: D's
+        # relative sensitivity to h is ≤ ~4/α ≈ 700, so 1e-16 in h gives ≤ 1e-13 in D.
+        np.testing.assert_allclose(t["h"], h, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(t["D"], _np_d(h, ax, ay), rtol=1e-12, atol=0)
+        lam_i, lam_o = _np_lambda(wi, ax, ay), _np_lambda(wo, ax, ay)
+        # Λ's textbook form loses ~1e-16 absolute to the cancellation in −1 + sqrt(1 + x) (x → 0 at
+        # normal incidence), hence atol; G1 = 1/(1 + Λ) is then good to ~1e-16 relative.
+        np.testing.assert_allclose(t["Lambda_i"], lam_i, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(t["Lambda_o"], lam_o, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(t["G1_i"], 1 / (1 + lam_i), rtol=1e-12, atol=0)
+        np.testing.assert_allclose(t["G1_o"], 1 / (1 + lam_o), rtol=1e-12, atol=0)
+        g_ref = 1 / (1 + lam_i + lam_o) if g == "height-correlated" else 1 / ((1 + lam_i) * (1 + lam_o))
+        np.testing.assert_allclose(t["G"], g_ref, rtol=1e-12, atol=0)
+        c = np.clip(np.sum(wi * h, 1), 0, 1)
+        np.testing.assert_allclose(t["c"], c, rtol=1e-14, atol=1e-15)
+        c = t["c"]  # F at the kernel's own c (as in section 2)
+        if fres == "schlick":
+            f0 = ((eta - 1) / (eta + 1)) ** 2
+            f_ref = f0 + (1 - f0) * (1 - c) ** 5
+            ok = np.ones(n, bool)
+        else:
+            f_ref = _np_fresnel_dielectric(c, eta)
+            # Within cos²θt < 1e-6 of the critical angle, cosθt = sqrt(1 − sin²θt) amplifies a 1e-16
+            # difference by up to 1/(2 cos²θt); outside that band the two forms agree to ≲ 1e-13.
+            ok = np.abs(1 - (1 - c**2) / eta**2) >= 1e-6
+        np.testing.assert_allclose(t["F"][ok], f_ref[ok], rtol=1e-12, atol=1e-15)
+        fs_ref = _np_d(h, ax, ay) * t["F"] * g_ref / (4 * wi[:, 2] * wo[:, 2])
+        np.testing.assert_allclose(t["fs"], fs_ref, rtol=1e-12, atol=0)
+
+
+def test_float64_closed_forms_match_mitsuba(mi):
+    """Ties section 6's numpy closed forms to Mitsuba (float32-limited, same 1e-5 as section 1)."""
+    rng = np.random.default_rng(13)
+    wi, wo = _pairs(rng, 200, 0.0)
+    s = wi + wo
+    h = s / np.linalg.norm(s, axis=1, keepdims=True)
+    for ax, ay in ALPHAS:
+        md = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, ax, ay, False)
+        hf = h.astype(np.float32)
+        d_mi = np.array([md.eval(_v(mi, x)) for x in hf])
+        g1_mi = np.array([md.smith_g1(_v(mi, a), _v(mi, m)) for a, m in zip(wi, hf)])
+        on = d_mi > 0
+        assert on.mean() > 0.99
+        assert _rel(_np_d(hf.astype(np.float64), ax, ay)[on], d_mi[on]).max() <= 1e-5
+        assert _rel(1 / (1 + _np_lambda(wi, ax, ay)), g1_mi).max() <= 1e-5
+    for eta in (1.5, 1 / 1.33):
+        c = rng.uniform(0, 1, 200)
+        ref = np.array([mi.fresnel(float(x), float(eta))[0] for x in c])
+        ok = np.abs(1 - (1 - c**2) / eta**2) >= 1e-2
+        assert _rel(_np_fresnel_dielectric(c, eta)[ok], ref[ok]).max() <= 1e-5
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_float64_agrees_with_float32(device):
+    rng = np.random.default_rng(14)
+    wi, wo = _pairs(rng, 2000, 0.05, np.float32)  # bit-identical inputs for both precisions
+    n = len(wi)
+    for ax, ay in ALPHAS:
+        for g in ("separable", "height-correlated"):
+            for fres, eta in (("schlick", 1.5), ("dielectric", 1.5), ("dielectric", 1 / 1.33)):
+                kw = dict(g=g, fresnel=fres, eta=eta)
+                t32 = _terms(wi, wo, ax, ay, device, **kw)
+                t64 = _terms(wi, wo, ax, ay, device, dtype="float64", **kw)
+                # float32 rounding only (measured ≤ 1.1e-6 for every term); near the critical angle
+                # (η < 1) F is ill-conditioned in c (see section 2: measured 7.9e-6 within
+                # cos²θt < 1e-2), so F and fs are compared outside that band.
+                ok = np.abs(1 - (1 - t64["c"] ** 2) / eta**2) >= 1e-2
+                for k in t32:
+                    sel = ok if k in ("F", "fs") else slice(None)
+                    assert t32[k].dtype == np.float32 and t64[k].dtype == np.float64
+                    assert _rel(t32[k][sel], t64[k][sel]).max() <= 1e-5, (ax, ay, g, fres, eta, k)
+    # Full BRDF through the float64 local frame, random non-orthogonal tangents.
+    nrm, tan = _random_frames(rng, 2000)
+    wi, wo = _above(rng, nrm, 0.1), _above(rng, nrm, 0.1)
+    ax, ay = np.exp(rng.uniform(np.log(0.05), 0, (2, 2000)))
+    args = (wi, wo, nrm, tan, rng.uniform(0, 1, (2000, 3)), rng.uniform(0, 10, (2000, 3)), ax, ay)
+    f32, f64 = ggx.brdf(*args, device=device), ggx.brdf(*args, device=device, dtype="float64")
+    assert f32.dtype == np.float32 and f64.dtype == np.float64
+    # α ≥ 0.05 keeps D's sensitivity to the float32-rotated h moderate (≤ ~4/α = 80 per unit of h,
+    # ~1e-7 rotation error): measured ≤ 2e-6.
+    assert _rel(f32, f64).max() <= 1e-5
+    # ρd/π in float64 carries 1/π to full precision (a float32 constant would be off by ~3e-8).
+    lam = ggx.brdf(wi, wo, nrm, tan, np.ones((2000, 3)), np.zeros((2000, 3)), ax, ay, device=device, dtype="float64")
+    np.testing.assert_allclose(lam, 1 / np.pi, rtol=1e-15, atol=0)
+    # The float64 frame: Gram–Schmidt reference at float64 precision.
+    v = rng.normal(size=(2000, 3))
+    loc = ggx.to_local(v, nrm, tan, device=device, dtype="float64")
+    tp = tan - np.sum(tan * nrm, 1, keepdims=True) * nrm
+    tp /= np.linalg.norm(tp, axis=1, keepdims=True)
+    ref = np.stack([np.sum(v * tp, 1), np.sum(v * np.cross(nrm, tp), 1), np.sum(v * nrm, 1)], 1)
+    assert loc.dtype == np.float64
+    np.testing.assert_allclose(loc, ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(ggx.to_local(v, nrm, tan, device=device), loc, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_float64_finite_everywhere_and_zero_below_horizon(device):
+    _check_finite_everywhere(device, "float64")
+
+
+# Autodiff through the generic functions (float64, so that central differences are accurate to ~1e-10).
+# Kernels are defined (and instantiated) at import time so that the test module compiles once.
+
+
+@wp.kernel
+def _spec_kernel(wi: wp.array(dtype=wp.vec3d), wo: wp.array(dtype=wp.vec3d), ax: wp.array(dtype=wp.float64),
+                 ay: wp.array(dtype=wp.float64), rho_s: wp.float64, g_mode: int, f_mode: int, eta: wp.float64,
+                 eps: wp.float64, out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    out[i] = rho_s * ggx.ggx_specular(wi[i], wo[i], ax[i], ay[i], g_mode, f_mode, eta, eps)
+
+
+@wp.kernel
+def _world_brdf_kernel(wi: wp.array(dtype=Any), wo: wp.array(dtype=Any), nrm: wp.array(dtype=Any),
+                       tan: wp.array(dtype=Any), rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any),
+                       ax: wp.array(dtype=Any), ay: wp.array(dtype=Any), g_mode: int, f_mode: int, eta: float,
+                       eps: float, out: wp.array(dtype=Any)):
+    """The call pattern of twin/lumitexel.py: a generic kernel, float32 options cast to the kernel's
+    float type, local_frame + ggx_brdf; out = f_r + f_g + f_b."""
+    i = wp.tid()
+    a = ax[i]
+    frame = ggx.local_frame(nrm[i], tan[i])
+    f = ggx.ggx_brdf(frame * wi[i], frame * wo[i], rho_d[i], rho_s[i], a, ay[i], g_mode, f_mode, type(a)(eta),
+                     type(a)(eps))
+    out[i] = f[0] + f[1] + f[2]
+
+
+_WORLD_KERNELS = {}
+for _s, _v3 in ((wp.float32, wp.vec3f), (wp.float64, wp.vec3d)):
+    _av, _as = wp.array(dtype=_v3), wp.array(dtype=_s)
+    _WORLD_KERNELS[_s] = wp.overload(_world_brdf_kernel, [_av] * 6 + [_as, _as, int, int, float, float, _as])
+
+
+def _fd_check(launch, params, h=1e-6, rtol=1e-5):
+    """params: dict name → float64 array (P, ...) with requires_grad; launch(arrays) → wp output (P,).
+    Compares the Tape gradient of sum(out) with central differences in each scalar input."""
+    arrs = {k: wp.array(v, dtype=d, requires_grad=True) for k, (v, d) in params.items()}
+    tape = wp.Tape()
+    with tape:
+        out = launch(arrs)
+    tape.backward(grads={out: wp.ones(out.shape, dtype=wp.float64)})
+    f = np.abs(out.numpy())[:, None]
+    base = {k: v.copy() for k, (v, _) in params.items()}
+    for k, (v, d) in params.items():
+        ad = arrs[k].grad.numpy().reshape(len(v), -1)
+        fd = np.zeros_like(ad)
+        for j in range(ad.shape[1]):
+            vals = []
+            for sgn in (1, -1):
+                x = base[k].reshape(len(v), -1).copy()
+                x[:, j] += sgn * h
+                moved = {kk: wp.array(x.reshape(v.shape) if kk == k else base[kk], dtype=dd)
+                         for kk, (_, dd) in params.items()}
+                vals.append(launch(moved).numpy())
+            fd[:, j] = (vals[0] - vals[1]) / (2 * h)
+        assert np.all(np.isfinite(ad)), k
+        # Central differences in float64: truncation h²f'''/6 ≲ 1e-12/α³ relative and round-off
+        # ~1e-16·f/h ≈ 1e-10·f absolute. rtol 1e-5, plus 1e-8·f absolute for components that vanish
+        # (e.g. w.r.t. the tangent of an isotropic lobe), leaves a wide margin yet catches any wrong
+        # adjoint (those are O(1) relative errors).
+        err = np.abs(ad - fd) / (rtol * np.abs(fd) + 1e-8 * f)
+        assert err.max() <= 1, (k, ad, fd)
+
+
+# Well-conditioned points: 30°–60° off the normal, off the anisotropy axes, α ≥ 0.1, no branch within h.
+_GRAD_POINTS = [  # (θi, φi, θo, φo) in degrees, αx, αy
+    ((35, 20, 50, 200), 0.3, 0.15),
+    ((30, 70, 45, 160), 0.5, 0.5),
+    ((55, 110, 40, 330), 0.12, 0.4),
+    ((20, 45, 60, 250), 1.0, 0.7),
+]
+
+
+def _sph(th, ph):
+    th, ph = np.radians(th), np.radians(ph)
+    return np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+
+
+@pytest.mark.parametrize("g_mode", [ggx.G_SEPARABLE, ggx.G_HEIGHT_CORRELATED])
+@pytest.mark.parametrize("f_mode,eta,eps", [(ggx.F_SCHLICK, 1.5, 0.0), (ggx.F_DIELECTRIC, 1.5, 1e-6),
+                                            (ggx.F_DIELECTRIC, 1 / 1.33, 0.0)])
+def test_float64_autodiff_specular_matches_finite_differences(g_mode, f_mode, eta, eps):
+    wi = np.array([_sph(*p[0][:2]) for p in _GRAD_POINTS])
+    wo = np.array([_sph(*p[0][2:]) for p in _GRAD_POINTS])
+    ax = np.array([p[1] for p in _GRAD_POINTS])
+    ay = np.array([p[2] for p in _GRAD_POINTS])
+    if eta < 1:  # keep the test points clear of total internal reflection (F ≡ 1, zero gradient)
+        c = np.sum(wi * (wi + wo) / np.linalg.norm(wi + wo, axis=1, keepdims=True), 1)
+        assert np.all((1 - c**2) / eta**2 < 0.9)  # sin²θt ≤ 0.86: cos²θt ≥ 0.14, well conditioned
+
+    def launch(a):
+        out = wp.zeros(len(ax), dtype=wp.float64, requires_grad=True)
+        wp.launch(_spec_kernel, dim=len(ax), device="cpu",
+                  inputs=[a["wi"], a["wo"], a["ax"], a["ay"], wp.float64(2.5), g_mode, f_mode, wp.float64(eta),
+                          wp.float64(eps), out])
+        return out
+
+    params = {"wi": (wi, wp.vec3d), "wo": (wo, wp.vec3d), "ax": (ax, wp.float64), "ay": (ay, wp.float64)}
+    _fd_check(launch, params)
+
+
+@pytest.mark.parametrize("g_mode", [ggx.G_SEPARABLE, ggx.G_HEIGHT_CORRELATED])
+def test_float64_autodiff_world_brdf_matches_finite_differences(g_mode):
+    """Through local_frame (Gram–Schmidt, cross product, matrix from rows) and ggx_brdf, w.r.t. the
+    world directions, the normal, the (non-orthogonal) tangent and α; and the float32 instantiation of
+    the same generic kernel agrees with the float64 one."""
+    rng = np.random.default_rng(15)
+    m = len(_GRAD_POINTS)
+    nrm, tan = _random_frames(rng, m)
+    frames = []
+    for k in range(m):  # world = local expressed in the row's frame (rows t', b, n)
+        tp = tan[k] - tan[k] @ nrm[k] * nrm[k]
+        tp /= np.linalg.norm(tp)
+        frames.append(np.stack([tp, np.cross(nrm[k], tp), nrm[k]]))
+    wi = np.array([f.T @ _sph(*p[0][:2]) for f, p in zip(frames, _GRAD_POINTS)])
+    wo = np.array([f.T @ _sph(*p[0][2:]) for f, p in zip(frames, _GRAD_POINTS)])
+    ax = np.array([p[1] for p in _GRAD_POINTS])
+    ay = np.array([p[2] for p in _GRAD_POINTS])
+    rho_d, rho_s = rng.uniform(0, 1, (m, 3)), rng.uniform(0.5, 5, (m, 3))
+
+    def launch(a, s=wp.float64):
+        out = wp.zeros(m, dtype=s, requires_grad=True)
+        wp.launch(_WORLD_KERNELS[s], dim=m, device="cpu",
+                  inputs=[a["wi"], a["wo"], a["nrm"], a["tan"], a["rho_d"], a["rho_s"], a["ax"], a["ay"], g_mode,
+                          ggx.F_DIELECTRIC, 1.5, 0.0, out])
+        return out
+
+    params = {"wi": (wi, wp.vec3d), "wo": (wo, wp.vec3d), "nrm": (nrm, wp.vec3d), "tan": (tan, wp.vec3d),
+              "rho_d": (rho_d, wp.vec3d), "rho_s": (rho_s, wp.vec3d), "ax": (ax, wp.float64),
+              "ay": (ay, wp.float64)}
+    _fd_check(launch, params)
+    # float32 instantiation of the same generic kernel: float32 rounding only.
+    a32 = {k: wp.array(v, dtype=wp.vec3f if d is wp.vec3d else wp.float32) for k, (v, d) in params.items()}
+    a64 = {k: wp.array(v, dtype=d) for k, (v, d) in params.items()}
+    f32, f64 = launch(a32, wp.float32).numpy(), launch(a64).numpy()
+    assert f32.dtype == np.float32
+    np.testing.assert_allclose(f32, f64, rtol=1e-5)

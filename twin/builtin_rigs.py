@@ -109,8 +109,15 @@ def holder_frame() -> HolderFrame:
     return replace(frame, marker_ids=np.arange(len(centres)), marker_corners=corners)
 
 
+def _nearest_rotation(R) -> np.ndarray:
+    """The released R is typed to 6 digits, so it is orthonormal only to ~1e-6; use the nearest
+    rotation (SVD), as OpenCV's Rodrigues does, so that R is exactly a rotation in float64."""
+    u, _, vt = np.linalg.svd(np.asarray(R, float))
+    return u @ vt
+
+
 def _cameras() -> dict[str, Camera]:
-    primary = Camera("primary", *PRIMARY_SIZE, PRIMARY_K, PRIMARY_DIST, PRIMARY_R, PRIMARY_T,
+    primary = Camera("primary", *PRIMARY_SIZE, PRIMARY_K, PRIMARY_DIST, _nearest_rotation(PRIMARY_R), PRIMARY_T,
                      note="released calibration (intrinsic.yml, extrinsic.yml), half resolution")
     o = _rigid_origin()
     d = SECONDARY_DISTANCE / np.sqrt(2)

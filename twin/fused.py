@@ -78,7 +78,6 @@ def fused_measurements(wpts, cam, leds, o: Options, w: np.ndarray, out: wp.array
         return
     L_pad = -(-L // TILE_L) * TILE_L
     P_pad = -(-P // TILE_P) * TILE_P
-    result = np.zeros((P, Kn, 3), np.float32)
     for k0 in range(0, Kn, TILE_K):
         kk = min(TILE_K, Kn - k0)
         wc = np.zeros((3, L_pad, TILE_K), np.float32)  # channel-major, LED rows, zero-padded
@@ -87,6 +86,11 @@ def fused_measurements(wpts, cam, leds, o: Options, w: np.ndarray, out: wp.array
         outs = [wp.zeros((P_pad, TILE_K), dtype=float, device=device) for _ in range(3)]
         wp.launch_tiled(fused_tile_kernel, dim=[P_pad // TILE_P], inputs=[*wpts, cam, *leds, o, L, *ws],
                         outputs=outs, block_dim=BLOCK_THREADS, device=device)
-        for c in range(3):
-            result[:, k0:k0 + kk, c] = outs[c].numpy()[:P, :kk]
-    out.assign(wp.array(result, dtype=wp.vec3f, device=device))
+        wp.launch(_pack_kernel, dim=(P, kk), inputs=[*outs, k0], outputs=[out], device=device)
+
+
+@wp.kernel
+def _pack_kernel(r: wp.array2d(dtype=float), g: wp.array2d(dtype=float), b: wp.array2d(dtype=float), k0: int,
+                 out: wp.array2d(dtype=wp.vec3)):
+    p, k = wp.tid()
+    out[p, k0 + k] = wp.vec3(r[p, k], g[p, k], b[p, k])

@@ -49,6 +49,8 @@ def import_opensvbrdf(directory: str | Path) -> Rig:
         K, dist = intr["camera_matrix"], intr["distortion_coefficients"].ravel()
         width, height = int(intr["image_width"]), int(intr["image_height"])
         R, t = extr["rmat"].astype(np.float64), extr["tvec"].astype(np.float64).ravel()
+        U, _, Vt = np.linalg.svd(R)  # float32 rmat -> nearest rotation (|R R^T - I| ~ 2e-8 as released)
+        R = U @ Vt
     except (OpenCVYamlError, KeyError) as e:
         raise RigError(f"{d}: cannot read the camera calibration ({e})") from None
     camera = Camera("primary", width, height, K, dist, R, t,

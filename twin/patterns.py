@@ -48,6 +48,8 @@ class PatternSet:
         names = tuple(str(n) for n in self.names)
         if len(names) != lv.shape[0]:
             raise PatternError(f"{len(names)} pattern names for {lv.shape[0]} frames")
+        if any("\0" in s for s in (*names, str(self.rig), str(self.note))):
+            raise PatternError("pattern names, rig and note must not contain NUL characters")
         if len(set(names)) != len(names):
             raise PatternError("pattern names must be unique")
         lv = lv.copy()
@@ -76,7 +78,7 @@ class PatternSet:
             w = np.repeat(w[..., None], 3, axis=2)
         if not np.all(np.isfinite(w)):
             raise PatternError("pattern weights contain NaN or Inf")
-        if w.min() < 0 or w.max() > 1:
+        if w.size and (w.min() < 0 or w.max() > 1):
             raise PatternError(f"pattern weights must lie in [0, 1] (LEDs cannot emit negative light; "
                                f"store signed patterns as +/- pairs), got [{w.min():g}, {w.max():g}]")
         return cls(np.rint(w * 255).astype(np.uint8), tuple(names), rig, note)
@@ -103,9 +105,14 @@ def load_patterns(path: str | os.PathLike) -> PatternSet:
     if not path.is_file():
         raise PatternError(f"{path}: no such pattern file")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise PatternError(f"{path}: not a {FORMAT_NAME} file (a single .npy array, not an npz archive)")
+        with z:
             if "format" not in z.files or str(z["format"]) != FORMAT_NAME:
                 raise PatternError(f"{path}: not a {FORMAT_NAME} file")
+            if "version" not in z.files:
+                raise PatternError(f"{path}: missing the format version")
             if int(z["version"]) != FORMAT_VERSION:
                 raise PatternError(f"{path}: unknown pattern format version {int(z['version'])}")
             missing = [k for k in ("levels", "names", "rig") if k not in z.files]

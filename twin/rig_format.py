@@ -105,8 +105,12 @@ def save_rig(rig: Rig, directory: str | os.PathLike, overwrite: bool = False) ->
         if dest.exists():
             old = dest.with_name(f".{dest.name}.old-{os.getpid()}")
             os.rename(dest, old)
-            os.rename(tmp, dest)
-            shutil.rmtree(old)
+            try:
+                os.rename(tmp, dest)
+            except BaseException:
+                os.rename(old, dest)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
         else:
             os.rename(tmp, dest)
     except BaseException:
@@ -187,11 +191,16 @@ def _load_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise RigError(f"{path.parent}: missing {path.name}")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise RigError(f"{path}: not an npz archive (a single .npy array)")
+        with z:
             missing = [k for k in keys if k not in z.files]
             if missing:
                 raise RigError(f"{path}: missing array(s) {missing}")
             return {k: z[k] for k in keys}
+    except RigError:
+        raise
     except ValueError as e:  # object arrays need pickle: refused
         raise RigError(f"{path}: refused to read ({e}); rig files never contain pickled objects") from None
     except (OSError, EOFError) as e:

@@ -4,10 +4,11 @@
 exists, and opens an interactive window otherwise. pyvista (and vtk) are imported inside the functions:
 the GPU benchmark machines do not have them, and `import twin.view` must not fail there.
 
-The view is fixed and deterministic: an oblique look from outside the cube on the -y side, a little
-above the sample. Every exterior view looks through at least one board, so the boards the viewer sees
-from behind (here the -y wall) are cut away: only their outline is drawn and their LEDs shrink to
-small dots, through which the far walls, the top and the sample stay visible.
+The view is fixed and deterministic: an oblique look down into the cube from outside it, on the -y side
+and about 30 degrees above the horizon. Every exterior view looks through at least one board, so the
+boards the viewer sees from behind (here the -y wall and the two top boards) are cut away: only their
+outline is drawn and their LEDs shrink to small flat dots, between which the far walls, the sample with
+its holder and the bottom board stay visible.
 """
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ import numpy as np
 BOARD_COLOURS = ("#4e79a7", "#f28e2b", "#59a14f", "#e15759", "#76b7b2", "#b07aa1", "#edc948",
                  "#ff9da7", "#9c755f", "#bab0ac")
 CAMERA_COLOURS = ("#1f3b73", "#8c2d04", "#225522", "#5b2a86")
-# Viewing direction (from the rig's centre towards the eye) and distance, in units of the rig's size.
+# Viewing direction (from the focal point towards the eye) and distance, in units of the rig's largest
+# extent: ~29 degrees of elevation, so the sample and the bottom board are seen well, not at a graze.
 VIEW_DIRECTION = (-0.05, -1.0, 0.55)
 VIEW_DISTANCE = 2.3
 
@@ -95,6 +97,8 @@ def led_colours(values, num_leds: int) -> tuple[str, np.ndarray | None]:
     if values is None:
         return "none", None
     v = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(v)):
+        raise ValueError("values contain NaN or Inf")
     if v.shape == (num_leds,):
         return "scalar", v
     if v.shape == (num_leds, 3):
@@ -106,8 +110,9 @@ def led_colours(values, num_leds: int) -> tuple[str, np.ndarray | None]:
 
 
 def default_view(rig) -> tuple[tuple, tuple, tuple]:
-    """(position, focal point, view up) of the fixed view: from outside the -y wall, somewhat above the
-    sample, offset towards +x so the -x wall is seen at an angle."""
+    """(position, focal point, view up) of the fixed view: from outside the -y wall and above the top,
+    looking at a point halfway between the sample and the top; slightly towards -x, so that the +x
+    wall (with the secondary camera's slot) is seen less edge-on."""
     pos = rig.leds.positions
     lo, hi = pos.min(0), pos.max(0)
     centre = 0.5 * (lo + hi)
@@ -137,50 +142,48 @@ def build_plotter(rig, values=None, window_size=(1200, 900), off_screen: bool = 
     view_angle = 30.0  # vtk's default vertical view angle, degrees
     px_per_mm = window_size[1] / (2 * np.linalg.norm(eye_dir) * np.tan(np.radians(view_angle / 2)))
 
-    mesh_kw = dict(render_points_as_spheres=True, lighting=True)
+    bar_shown = False
     for b, board in enumerate(rig.boards):
         sel = np.flatnonzero(rig.leds.board == b)
         if sel.size == 0:
             continue
+        colour = BOARD_COLOURS[b % len(BOARD_COLOURS)]
         corners, n = board_rectangle(rig, b)
-        # The viewer sees a board from behind when it is outside the board's plane: cut it away.
+        # The viewer sees a board from behind when it is outside the board's plane: cut it away, i.e.
+        # draw only its outline, and its LEDs as small flat dots between which the inside shows.
         cut = np.dot(np.subtract(eye, corners.mean(0)), n) < 0
-        rect = pv.PolyData(corners, faces=[4, 0, 1, 2, 3])
-        pitch = _led_pitch(rig, sel)
+        size = float(np.clip(0.65 * _led_pitch(rig, sel) * px_per_mm, 3, 24))
         if cut:
             pl.add_mesh(pv.PolyData(np.vstack([corners, corners[:1]]), lines=[5, 0, 1, 2, 3, 4]),
                         color="#555555", line_width=1.5)
-        else:
-            pl.add_mesh(rect, color=BOARD_COLOURS[b % len(BOARD_COLOURS)] if kind == "none" else "#7a8494",
-                        opacity=0.18, show_edges=True, edge_color="#555555", line_width=1.5)
-        size = float(np.clip(0.65 * pitch * px_per_mm, 3, 24))
-        kw = dict(mesh_kw)
-        if cut:  # small flat dots: the LEDs stay readable, and the inside shows between them
             size = max(2.0, 0.3 * size)
-            kw["render_points_as_spheres"] = False
+        else:
+            pl.add_mesh(pv.PolyData(corners, faces=[4, 0, 1, 2, 3]),
+                        color=colour if kind == "none" else "#7a8494", opacity=0.18, show_edges=True,
+                        edge_color="#555555", line_width=1.5)
+        kw = dict(point_size=size, render_points_as_spheres=not cut, lighting=True)
         cloud = pv.PolyData(rig.leds.positions[sel])
         if kind == "none":
-            pl.add_mesh(cloud, color=BOARD_COLOURS[b % len(BOARD_COLOURS)], point_size=size,
-                        label=f"{board.name} ({sel.size})", **kw)
+            pl.add_mesh(cloud, color=colour, label=f"{board.name} ({sel.size})", **kw)
         elif kind == "rgb":
             cloud["rgb"] = colours[sel]
-            pl.add_mesh(cloud, scalars="rgb", rgb=True, point_size=size, **kw)
-        else:
+            pl.add_mesh(cloud, scalars="rgb", rgb=True, **kw)
+        else:  # one shared colour range for all boards, so one scalar bar describes them all
             cloud["value"] = colours[sel]
             lo, hi = float(colours.min()), float(colours.max())
             pl.add_mesh(cloud, scalars="value", cmap="inferno", clim=(lo, hi if hi > lo else lo + 1),
-                        point_size=size, show_scalar_bar=b == 0,
+                        show_scalar_bar=not bar_shown,
                         scalar_bar_args=dict(title="LED value", vertical=True, position_x=0.88,
-                                             position_y=0.25, height=0.5, color="black"),
-                        **kw)
+                                             position_y=0.25, height=0.5, color="black"), **kw)
+            bar_shown = True
 
     _add_bottom(pl, rig, pv)
     _add_sample(pl, rig, pv)
     _add_cameras(pl, rig, pv)
     if kind == "none":
-        pl.add_legend(bcolor="white", face="circle", size=(0.14, 0.2), loc="lower right")
+        pl.add_legend(bcolor="white", face="circle", size=(0.14, 0.2), loc="upper left")
     pl.add_text(f"rig {rig.name}: {rig.num_leds} LEDs on {len(rig.boards)} boards, "
-                f"{len(rig.cameras)} cameras", position="upper_left", font_size=11, color="black")
+                f"{len(rig.cameras)} cameras", position="upper_edge", font_size=11, color="black")
     pl.add_axes(color="black")
     pl.camera_position = [eye, focus, up]
     pl.camera.view_angle = view_angle

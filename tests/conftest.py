@@ -1,0 +1,136 @@
+"""Shared fixtures: the released OpenSVBRDF reference folder and the (cached) rigs.
+
+The reference folder lives beside the repository root (`../shared/reference/opensvbrdf_lightstage`).
+It is present on CI and on developers' machines but not on a user's clone, so every test that needs it
+goes through the `reference_dir` fixture, which skips with a fixed reason when it is absent.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("WARP_CACHE_PATH", str(Path(__file__).resolve().parents[1] / ".cache" / "warp"))
+
+REFERENCE_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "opensvbrdf_lightstage"
+REFERENCE_SKIP_REASON = ("reference data ../shared/reference not present "
+                         "(it is on CI and dev machines, not on a user's clone)")
+NUM_UPPER = 12 * 1024  # 6 boards x 64 x 32, as released
+
+
+def reference_present() -> bool:
+    return (REFERENCE_DIR / "lights.bin").is_file()
+
+
+@pytest.fixture(scope="session")
+def reference_dir() -> Path:
+    if not reference_present():
+        pytest.skip(REFERENCE_SKIP_REASON)
+    return REFERENCE_DIR
+
+
+@pytest.fixture(scope="session")
+def released_lights(reference_dir) -> tuple[np.ndarray, np.ndarray]:
+    """lights.bin read directly: float32 (2, N, 3) -> (positions, stored OUTWARD normals)."""
+    raw = np.fromfile(reference_dir / "lights.bin", dtype="<f4")
+    assert raw.size == 2 * NUM_UPPER * 3
+    lights = raw.reshape(2, -1, 3)
+    return lights[0], lights[1]
+
+
+@pytest.fixture(scope="session")
+def released_preview(reference_dir) -> np.ndarray:
+    """visualize_config_torch.bin read directly: int32 header (128, 192), then N (col, row) pairs."""
+    raw = np.fromfile(reference_dir / "visualize_config_torch.bin", dtype="<i4")
+    assert tuple(raw[:2]) == (128, 192)
+    return raw[2:].reshape(-1, 2)
+
+
+@pytest.fixture(scope="session")
+def released_cam_pos(reference_dir) -> np.ndarray:
+    return np.fromfile(reference_dir / "cam_pos.bin", dtype="<f4").astype(np.float64)
+
+
+@pytest.fixture(scope="session")
+def paper():
+    import twin
+
+    return twin.load_rig("paper")
+
+
+@pytest.fixture(scope="session")
+def mini():
+    import twin
+
+    return twin.load_rig("mini")
+
+
+@pytest.fixture(scope="session")
+def imported(reference_dir):
+    from twin.opensvbrdf_import import import_opensvbrdf
+
+    return import_opensvbrdf(reference_dir)
+
+
+class PickleBomb:
+    """Unpickling this creates `marker` (via open(marker, "w")): proof that something was unpickled."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def pickle_bomb_array(marker) -> np.ndarray:
+    """A 0-d object array that runs PickleBomb on unpickling."""
+    a = np.empty((), dtype=object)
+    a[()] = PickleBomb(marker)
+    return a
+
+
+def assert_rigs_identical(a, b) -> None:
+    """Every array bit-equal with the same dtype, every camera bit-equal, same scalars and digest."""
+    from twin.rig import LEDs
+
+    assert a.name == b.name
+    assert a.num_leds == b.num_leds
+    for k in LEDs.ARRAYS:
+        x, y = getattr(a.leds, k), getattr(b.leds, k)
+        assert x.dtype == y.dtype, k
+        assert x.shape == y.shape, k
+        assert x.tobytes() == y.tobytes(), k
+    assert a.boards == b.boards
+    assert list(a.cameras) == list(b.cameras)
+    for n in a.cameras:
+        ca, cb = a.cameras[n], b.cameras[n]
+        for attr in ("K", "dist", "R", "t"):
+            x, y = getattr(ca, attr), getattr(cb, attr)
+            assert x.dtype == y.dtype and x.shape == y.shape, (n, attr)
+            assert x.tobytes() == y.tobytes(), (n, attr)
+        assert (ca.name, ca.width, ca.height, ca.sensor, ca.assumed, ca.note) == \
+               (cb.name, cb.width, cb.height, cb.sensor, cb.assumed, cb.note)
+    assert a.sample == b.sample
+    assert a.bottom == b.bottom
+    assert (a.frame is None) == (b.frame is None)
+    if a.frame is not None:
+        for attr in ("inner_size", "outer_size", "height", "marker_dictionary", "marker_size"):
+            assert getattr(a.frame, attr) == getattr(b.frame, attr)
+        for attr in ("marker_ids", "marker_corners"):
+            x, y = getattr(a.frame, attr), getattr(b.frame, attr)
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), attr
+    assert (a.led_profile, a.notes, a.length_unit) == (b.led_profile, b.notes, b.length_unit)
+    assert a.digest() == b.digest()
+
+
+def copy_reference(reference_dir: Path, dst: Path) -> Path:
+    """A writable copy of the (read-only) reference folder."""
+    import shutil
+
+    shutil.copytree(reference_dir, dst, copy_function=shutil.copyfile)
+    dst.chmod(0o755)
+    for p in dst.iterdir():
+        p.chmod(0o644)
+    return dst

@@ -1,0 +1,168 @@
+"""`hemicube bench ...`: throughput figures as JSON, each with a same-run baseline.
+
+bench lumitexel: LED-BRDF evaluations per second (points x LEDs / second) of
+  * the Warp materialising kernel (lumitexels stored),
+  * the Warp fused kernel (64-pattern measurements, lumitexels never stored),
+  * the baseline: a plain batched-torch version of the same formula (Eq. 1 with the same GGX,
+    Lambertian LEDs, no visibility; then an einsum with the patterns), eager and torch.compile'd.
+The Warp kernels run with visibility off so both sides compute the same thing; the JSON reports the
+largest relative difference between Warp and the torch baseline as a cross-check.
+"""
+from __future__ import annotations
+
+import math
+import platform
+import time
+
+import numpy as np
+
+
+def random_points(P: int, seed: int = 0, half_size: float = 75.0, plane_z: float = -122.0):
+    """Seeded random surface points on the sample plane with the training distribution's ranges."""
+    rng = np.random.default_rng(seed)
+    pos = np.c_[rng.uniform(-half_size, half_size, (P, 2)), np.full(P, plane_z)]
+    n = rng.normal(size=(P, 3)) * 0.3 + [0.0, 0.0, 1.0]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    t = np.cross(n, rng.normal(size=(P, 3)))
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    la, lb = np.log(0.006), np.log(0.5)
+    return dict(position=pos, normal=n, tangent=t, rho_d=rng.uniform(0, 1, (P, 3)), rho_s=rng.uniform(0, 10, (P, 3)),
+                alpha_x=np.exp(rng.uniform(la, lb, P)), alpha_y=np.exp(rng.uniform(la, lb, P)))
+
+
+def torch_lumitexel(pos, n, t, rd, rs, ax, ay, lpos, lnrm, cam):
+    """Plain batched torch Eq. 1 (physical convention, Lambertian LEDs, V = 1): (P, L, 3)."""
+    import torch
+
+    d = lpos[None] - pos[:, None]  # mm
+    r2 = (d * d).sum(-1)
+    wi = d / r2.sqrt()[..., None]
+    wo = torch.nn.functional.normalize(cam[None] - pos, dim=-1)
+    t = torch.nn.functional.normalize(t - (t * n).sum(-1, keepdim=True) * n, dim=-1)
+    b = torch.cross(n, t, dim=-1)
+    frame = torch.stack([t, b, n], dim=1)  # (P, 3, 3)
+    wil = torch.einsum("pij,plj->pli", frame, wi)
+    wol = torch.einsum("pij,pj->pi", frame, wo)[:, None]
+    h = torch.nn.functional.normalize(wil + wol, dim=-1)
+    axx, ayy = ax[:, None], ay[:, None]
+    s = (h[..., 0] / axx) ** 2 + (h[..., 1] / ayy) ** 2 + h[..., 2] ** 2
+    D = 1.0 / (math.pi * axx * ayy * s * s)
+
+    def g1(v):
+        return 2 * v[..., 2] / (v[..., 2] + torch.sqrt((axx * v[..., 0]) ** 2 + (ayy * v[..., 1]) ** 2 + v[..., 2] ** 2))
+
+    G = g1(wil) * g1(wol)
+    c = (wil * h).sum(-1).clamp(0, 1)
+    F = 0.04 + 0.96 * (1 - c) ** 5
+    ci, co = wil[..., 2], wol[..., 2]
+    fs = D * F * G / (4 * ci * co)
+    f = rd[:, None] / math.pi + rs[:, None] * fs[..., None]
+    cos_l = -(wi * lnrm[None]).sum(-1)
+    geo = ci.clamp(min=0) * cos_l.clamp(min=0) / (r2 * 1e-6)
+    valid = (ci > 0) & (co > 0) & (cos_l > 0)
+    return torch.where(valid[..., None], f * geo[..., None], torch.zeros_like(f))
+
+
+def _time(fn, sync, repeats):
+    fn()
+    sync()
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patterns=64, repeats=5,
+                    compile_torch=True):
+    import torch
+    import warp as wp
+
+    import twin
+    from twin import lumitexel as K
+    from twin.forward import CONVENTIONS, _device_inputs, _led_inputs, make_options
+    from twin.fused import fused_measurements
+    
+    from dataclasses import replace
+
+    rig = twin.load_rig(rig_name)
+    # Upper LEDs only: the plain formula has no notion of light arriving through the acrylic from below
+    # (a tilted normal would "see" a bottom LED), and the lumitexel of paper §6 is the 12,288 upper LEDs.
+    upper = np.flatnonzero(~rig.is_bottom)
+    rig = replace(rig, leds=rig.leds.subset(upper[:leds] if leds else upper))
+    L, P = rig.num_leds, points
+    pts = random_points(P)
+    w = np.random.default_rng(1).uniform(0, 1, (patterns, L, 3)).astype(np.float32)
+    args = [pts[k] for k in ("position", "normal", "tangent", "rho_d", "rho_s", "alpha_x", "alpha_y")]
+    arrays, wpts, cam = _device_inputs(rig, device, "float32", None, *args, np.zeros(P))
+    o = make_options(rig, arrays, "physical", "separable", "schlick", 1.5, visibility=False)
+    leds_in = _led_inputs(arrays, CONVENTIONS["physical"])
+    m = wp.zeros((P, L), dtype=wp.vec3f, device=device)
+    out = wp.zeros((P, patterns), dtype=wp.vec3f, device=device)
+
+    def run_mat():
+        wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*wpts, cam, *leds_in, o], outputs=[m], device=device)
+
+    def run_fused():
+        out.zero_()
+        fused_measurements(wpts, cam, leds_in, o, w, out, device)
+
+    sync = lambda: wp.synchronize_device(device)  # noqa: E731
+    t_mat = _time(run_mat, sync, repeats)
+    t_fused = _time(run_fused, sync, repeats)
+
+    tdev = torch.device("cuda" if str(device).startswith("cuda") else "cpu")
+    T = {k: torch.as_tensor(v, dtype=torch.float32, device=tdev) for k, v in pts.items()}
+    lpos = torch.tensor(rig.led_positions, dtype=torch.float32, device=tdev)
+    lnrm = torch.tensor(rig.led_normals, dtype=torch.float32, device=tdev)
+    camt = torch.as_tensor(rig.primary.centre, dtype=torch.float32, device=tdev)
+    wt = torch.as_tensor(w, device=tdev)
+    chunk = max(1, min(P, int(2e8 // (L * 3 * 8))))  # bound the eager intermediates' memory
+
+    def torch_fused(fn):
+        def run():
+            outs = []
+            for i in range(0, P, chunk):
+                s = slice(i, i + chunk)
+                lum = fn(T["position"][s], T["normal"][s], T["tangent"][s], T["rho_d"][s], T["rho_s"][s],
+                         T["alpha_x"][s], T["alpha_y"][s], lpos, lnrm, camt)
+                outs.append(torch.einsum("klc,plc->pkc", wt, lum))
+            return torch.cat(outs)
+        return run
+
+    tsync = (lambda: torch.cuda.synchronize()) if tdev.type == "cuda" else (lambda: None)
+    result = {
+        "benchmark": "lumitexel", "rig": rig_name, "device": str(wp.get_device(device)),
+        "device_name": wp.get_device(device).name if tdev.type == "cuda" else platform.processor() or "cpu",
+        "leds": L, "points": P, "patterns": patterns, "evaluations": P * L,
+        "warp_version": wp.__version__, "torch_version": torch.__version__,
+        "warp_materialise_evals_per_s": P * L / t_mat, "warp_materialise_s": t_mat,
+        "warp_fused_evals_per_s": P * L / t_fused, "warp_fused_s": t_fused,
+    }
+    with torch.no_grad():
+        run_eager = torch_fused(torch_lumitexel)
+        t_eager = _time(run_eager, tsync, max(1, repeats // 2))
+        ref = run_eager().cpu().numpy()
+        result["torch_eager_evals_per_s"] = P * L / t_eager
+        result["torch_eager_s"] = t_eager
+        got = out.numpy()
+        result["max_rel_diff_warp_vs_torch"] = float(np.abs(got - ref).max() / np.abs(ref).max())
+        if compile_torch:
+            compiled = torch.compile(torch_lumitexel, dynamic=False)
+            t_comp = _time(torch_fused(compiled), tsync, max(1, repeats // 2))
+            result["torch_compile_evals_per_s"] = P * L / t_comp
+            result["torch_compile_s"] = t_comp
+    base = result.get("torch_compile_evals_per_s", result["torch_eager_evals_per_s"])
+    result["baseline"] = "torch_compile" if "torch_compile_evals_per_s" in result else "torch_eager"
+    result["fused_speedup_vs_baseline"] = result["warp_fused_evals_per_s"] / base
+    result["materialise_speedup_vs_baseline"] = result["warp_materialise_evals_per_s"] / base
+    return result
+
+
+def run_bench(args) -> dict:
+    if args.bench_command == "lumitexel":
+        return bench_lumitexel(args.rig, args.device, args.leds, args.points, args.patterns, args.repeats,
+                               not args.no_compile)
+    raise ValueError(f"unknown benchmark {args.bench_command!r}")
