@@ -96,18 +96,18 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     pts = random_points(P)
     w = np.random.default_rng(1).uniform(0, 1, (patterns, L, 3)).astype(np.float32)
     args = [pts[k] for k in ("position", "normal", "tangent", "rho_d", "rho_s", "alpha_x", "alpha_y")]
-    arrays, wpts, cam = _device_inputs(rig, device, "float32", None, *args, np.zeros(P))
+    arrays, wpts = _device_inputs(rig, device, "float32", None, *args, np.zeros(P))
     o = make_options(rig, arrays, "physical", "separable", "schlick", 1.5, visibility=False)
     leds_in = _led_inputs(arrays, CONVENTIONS["physical"])
     m = wp.zeros((P, L), dtype=wp.vec3f, device=device)
     out = wp.zeros((P, patterns), dtype=wp.vec3f, device=device)
 
     def run_mat():
-        wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*wpts, cam, *leds_in, o], outputs=[m], device=device)
+        wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*wpts, *leds_in, o], outputs=[m], device=device)
 
     def run_fused():
         out.zero_()
-        fused_measurements(wpts, cam, leds_in, o, w, out, device)
+        fused_measurements(wpts, leds_in, o, w, out, device)
 
     sync = lambda: wp.synchronize_device(device)  # noqa: E731
     t_mat = _time(run_mat, sync, repeats)

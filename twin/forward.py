@@ -228,8 +228,9 @@ def _device_inputs(rig, device, dtype, camera, pos, n, t, rd, rs, ax, ay, beta, 
     def a(x, t_):
         return wp.array(np.ascontiguousarray(x, dtype=npd), dtype=t_, device=device, requires_grad=requires_grad)
 
-    pts = [a(pos, vec), a(n, vec), a(t, vec), a(rd, vec), a(rs, vec), a(ax, scal), a(ay, scal), a(beta, scal)]
-    return arrays, pts, arrays.cameras[cam_name]
+    pts = K.point_inputs(a(pos, vec), a(n, vec), a(t, vec), a(rd, vec), a(rs, vec), a(ax, scal), a(ay, scal),
+                         a(beta, scal), arrays.cameras[cam_name], device)
+    return arrays, pts
 
 
 def _led_inputs(arrays: RigArrays, conv: Convention):
@@ -250,11 +251,11 @@ def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *
                                 convention=convention, device=device, camera=camera, transparency=transparency,
                                 g=g, fresnel=fresnel, eta=eta, visibility=visibility)
     pts = validate_points(position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, transparency)
-    arrays, wpts, cam = _device_inputs(rig, device, dtype, camera, *pts)
+    arrays, wpts = _device_inputs(rig, device, dtype, camera, *pts)
     o = make_options(rig, arrays, convention, g, fresnel, eta, visibility)
     vec = wp.vec3d if dtype == "float64" else wp.vec3f
     out = wp.zeros((len(pts[0]), rig.num_leds), dtype=vec, device=device)
-    wp.launch(K.lumitexel_kernel, dim=out.shape, inputs=[*wpts, cam, *_led_inputs(arrays, CONVENTIONS[convention]), o],
+    wp.launch(K.lumitexel_kernel, dim=out.shape, inputs=[*wpts, *_led_inputs(arrays, CONVENTIONS[convention]), o],
               outputs=[out], device=device)
     return out.numpy()
 
@@ -273,7 +274,7 @@ def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y,
                                   g=g, fresnel=fresnel, eta=eta, visibility=visibility)
     pts = validate_points(position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, transparency)
     w = validate_patterns(patterns, rig.num_leds)
-    arrays, wpts, cam = _device_inputs(rig, device, dtype, camera, *pts)
+    arrays, wpts = _device_inputs(rig, device, dtype, camera, *pts)
     o = make_options(rig, arrays, convention, g, fresnel, eta, visibility)
     vec = wp.vec3d if dtype == "float64" else wp.vec3f
     npd = np.float64 if dtype == "float64" else np.float32
@@ -282,13 +283,13 @@ def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y,
     out = wp.zeros((P, Kn), dtype=vec, device=device)
     if method == "materialise":
         m = wp.zeros((P, rig.num_leds), dtype=vec, device=device)
-        wp.launch(K.lumitexel_kernel, dim=m.shape, inputs=[*wpts, cam, *leds, o], outputs=[m], device=device)
+        wp.launch(K.lumitexel_kernel, dim=m.shape, inputs=[*wpts, *leds, o], outputs=[m], device=device)
         W = wp.array(w.astype(npd), dtype=vec, device=device)
         wp.launch(K.project_kernel, dim=out.shape, inputs=[m, W], outputs=[out], device=device)
     elif method == "fused":
         from .fused import fused_measurements
 
-        fused_measurements(wpts, cam, leds, o, w.astype(npd), out, device)
+        fused_measurements(wpts, leds, o, w.astype(npd), out, device)
     else:
         raise ValueError(f"unknown method {method!r}; expected 'fused' or 'materialise'")
     return out.numpy()

@@ -12,6 +12,7 @@ sets the irradiance cosine). Refraction in the thin slab is neglected. Every ker
 float32 / float64 (float64 for gradient checks) and is defined at import time.
 
 Kernels:
+  * point_frames_kernel (P,) each point's local frame and view direction, once
   * lumitexel_kernel   (P, L)  materialises m[p, l]           (training data; differentiable)
   * project_kernel     (P, K)  B[p, k] = sum_l W[k, l] m[p, l] (differentiable w.r.t. m and W)
   * fused_loop_kernel  (P,)    B without storing m: portable loop, used on CPU
@@ -56,10 +57,11 @@ def visible(mesh: wp.uint64, x: wp.vec3, wi: wp.vec3, r: float, offset: float):
 
 
 @wp.func
-def led_response(x: Any, n: Any, t: Any, rho_d: Any, rho_s: Any, ax: Any, ay: Any, beta: Any, wo: Any,
+def led_response(x: Any, frame: Any, wo_l: Any, rho_d: Any, rho_s: Any, ax: Any, ay: Any, beta: Any,
                  lp: Any, ln: Any, lu: Any, li: Any, prof: wp.array2d(dtype=Any), l: int, bottom: int,
                  o: Options):
-    """Eq. 1 for one point and one LED (see module docstring); returns an RGB vector."""
+    """Eq. 1 for one point and one LED (see module docstring); returns an RGB vector. `frame` is the
+    point's world->local rotation and `wo_l` its local view direction (point_frames_kernel)."""
     zero = ax * type(ax)(0.0)
     d = lp - x
     r2 = wp.dot(d, d)
@@ -77,12 +79,10 @@ def led_response(x: Any, n: Any, t: Any, rho_d: Any, rho_s: Any, ax: Any, ay: An
         k = type(ax)(o.acrylic_transmission) * beta * type(ax)(0.3183098861837907) * a * c * inv_r2
         val = wp.cw_mul(li, type(li)(k, k, k))
     else:
-        frame = local_frame(n, t)
         wi_l = frame * wi
         if wi_l[2] < type(ax)(o.min_cos_i) or wi_l[2] <= zero:
             return type(wi)(zero, zero, zero)
-        f = ggx_brdf(wi_l, frame * wo, rho_d, rho_s, ax, ay, o.g_mode, o.f_mode, type(ax)(o.eta),
-                     type(ax)(o.eps))
+        f = ggx_brdf(wi_l, wo_l, rho_d, rho_s, ax, ay, o.g_mode, o.f_mode, type(ax)(o.eta), type(ax)(o.eps))
         val = wp.cw_mul(li, f) * (a * wi_l[2] * inv_r2)
     if o.use_visibility != 0:
         if not visible(o.mesh, wp.vec3(x), wp.vec3(wi), float(r), o.ray_offset):
@@ -90,21 +90,26 @@ def led_response(x: Any, n: Any, t: Any, rho_d: Any, rho_s: Any, ax: Any, ay: An
     return val * type(ax)(o.scale)
 
 
-@wp.func
-def view_dir(cam: Any, x: Any):
-    return wp.normalize(cam - x)
+@wp.kernel
+def point_frames_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp.array(dtype=Any),
+                        cam: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any)):
+    """Per point, once: the local frame (t', b, n) (Gram-Schmidt, ggx.local_frame) and the view
+    direction in it. Every LED of the point reuses them."""
+    p = wp.tid()
+    f = local_frame(nrm[p], tan[p])
+    frames[p] = f
+    wo_l[p] = f * wp.normalize(cam[0] - pos[p])
 
 
 @wp.kernel
-def lumitexel_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp.array(dtype=Any),
+def lumitexel_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any),
                      rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any), ax: wp.array(dtype=Any),
-                     ay: wp.array(dtype=Any), beta: wp.array(dtype=Any), cam: wp.array(dtype=Any),
+                     ay: wp.array(dtype=Any), beta: wp.array(dtype=Any),
                      lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
                      lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
                      o: Options, out: wp.array2d(dtype=Any)):
     p, l = wp.tid()
-    x = pos[p]
-    out[p, l] = led_response(x, nrm[p], tan[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p], view_dir(cam[0], x),
+    out[p, l] = led_response(pos[p], frames[p], wo_l[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p],
                              lpos[l], lnrm[l], lu[l], lint[l], prof, l, lbot[l], o)
 
 
@@ -112,27 +117,36 @@ def lumitexel_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp
 def project_kernel(m: wp.array2d(dtype=Any), w: wp.array2d(dtype=Any), out: wp.array2d(dtype=Any)):
     """B[p, k] = sum_l W[k, l] (.) m[p, l], channel-wise (paper Eq. 2)."""
     p, k = wp.tid()
-    acc = out[p, k] * out.dtype.dtype(0.0)  # dtype-correct zero
-    for l in range(m.shape[1]):
+    acc = wp.cw_mul(w[k, 0], m[p, 0])
+    for l in range(1, m.shape[1]):
         acc += wp.cw_mul(w[k, l], m[p, l])
     out[p, k] = acc
 
 
 @wp.kernel
-def fused_loop_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp.array(dtype=Any),
+def fused_loop_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any),
                       rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any), ax: wp.array(dtype=Any),
-                      ay: wp.array(dtype=Any), beta: wp.array(dtype=Any), cam: wp.array(dtype=Any),
+                      ay: wp.array(dtype=Any), beta: wp.array(dtype=Any),
                       lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
                       lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
                       o: Options, w: wp.array2d(dtype=Any), out: wp.array2d(dtype=Any)):
     """One thread per point: B[p, :] accumulated LED by LED, the lumitexel never stored. The row
-    out[p, :] stays in the CPU's cache; on CUDA fused_tile_kernel is used instead."""
+    out[p, :] stays in the CPU's cache; on CUDA fused_tile_kernel (twin.fused) is used instead."""
     p = wp.tid()
-    x = pos[p]
-    wo = view_dir(cam[0], x)
     for l in range(lpos.shape[0]):
-        m = led_response(x, nrm[p], tan[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p], wo, lpos[l], lnrm[l],
+        m = led_response(pos[p], frames[p], wo_l[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p], lpos[l], lnrm[l],
                          lu[l], lint[l], prof, l, lbot[l], o)
         if wp.length_sq(m) > ax[p] * type(ax[p])(0.0):
             for k in range(w.shape[0]):
                 out[p, k] = out[p, k] + wp.cw_mul(w[k, l], m)
+
+
+def point_inputs(pos, nrm, tan, rho_d, rho_s, ax, ay, beta, cam, device) -> list:
+    """Launch point_frames_kernel (recorded on an active wp.Tape, so gradients reach n and t) and return
+    the per-point argument list every kernel above takes."""
+    mat = wp.mat33d if pos.dtype == wp.vec3d else wp.mat33f
+    frames = wp.zeros(pos.shape[0], dtype=mat, device=device, requires_grad=pos.requires_grad)
+    wo_l = wp.zeros(pos.shape[0], dtype=pos.dtype, device=device, requires_grad=pos.requires_grad)
+    wp.launch(point_frames_kernel, dim=pos.shape[0], inputs=[pos, nrm, tan, cam], outputs=[frames, wo_l],
+              device=device)
+    return [pos, frames, wo_l, rho_d, rho_s, ax, ay, beta]

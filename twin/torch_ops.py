@@ -44,8 +44,8 @@ class WarpForward(torch.autograd.Function):
         m = wp.zeros((P, L), dtype=vec, device=device, requires_grad=True)
         tape = wp.Tape()
         with tape:
-            wp.launch(K.lumitexel_kernel, dim=(P, L),
-                      inputs=[*ins, arrays.cameras[cam_name], *_led_inputs(arrays, CONVENTIONS[convention]), o],
+            pts = K.point_inputs(*ins, arrays.cameras[cam_name], device)
+            wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*pts, *_led_inputs(arrays, CONVENTIONS[convention]), o],
                       outputs=[m], device=device)
             out = m
             if w is not None:
