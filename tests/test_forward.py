@@ -128,7 +128,8 @@ def test_bottom_leds_transmission_closed_form(mini, device):
     wi = d / r[..., None]
     cos_l = -(wi * mini.led_normals[b][None]).sum(-1)
     cos_p = -wi[..., 2]
-    want = (mini.bottom.acrylic_transmission * beta[:, None] / np.pi * cos_l * cos_p / (r * 1e-3) ** 2)
+    want = (mini.leds.intensity[b, 1][None] * mini.bottom.acrylic_transmission * beta[:, None] / np.pi * cos_l
+            * cos_p / (r * 1e-3) ** 2)
     np.testing.assert_allclose(m[:, b, 1], want, rtol=1e-5, atol=0)
 
 
@@ -164,7 +165,8 @@ def test_led_profiles_closed_form(mini, profile, device):
         pu = np.polyval(prof[0, 3::-1].astype(float), th)
         pv = np.polyval(prof[0, 7:3:-1].astype(float), th)
         a = np.clip(cu2 * pu + (1 - cu2) * pv, 0, None) * c
-    want = np.where((c > 0) & (wi[:, 2] > 0) & ~rig.is_bottom, a * wi[:, 2] / np.pi / (r * 1e-3) ** 2, 0.0)
+    want = np.where((c > 0) & (wi[:, 2] > 0) & ~rig.is_bottom,
+                    rig.leds.intensity[:, 0] * a * wi[:, 2] / np.pi / (r * 1e-3) ** 2, 0.0)
     np.testing.assert_allclose(m, want, rtol=2e-5, atol=0)  # acos/pow in float32: a few ulp more
 
 

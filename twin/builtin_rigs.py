@@ -41,6 +41,10 @@ BOTTOM_GRID = 64
 BOTTOM_PITCH = 10.0
 BOTTOM_CENTRE = (-45.0, 0.0, -182.0)
 
+# Per-LED radiant intensity on axis at full drive, W/sr, RGB. ASSUMED (the calibrated lights_intensity.npy
+# is not released, reference §1.1): a ~0.2 W mid-power white LED behind a diffuser, ~0.05 W/sr.
+LED_INTENSITY_W_SR = 0.05
+
 # Released primary camera (reference §1.5): intrinsic.yml / extrinsic.yml, at the released
 # resolution 2664 x 2304 (the a2A5328-15ucPRO's 5328 x 4608 sensor at half resolution, as the
 # released pipeline uses it; `Camera.resized(2)` gives the native grid).
@@ -142,7 +146,7 @@ def paper_rig() -> Rig:
         board=np.concatenate([board, np.full(L_b, len(UPPER_BOARDS))]),
         row=np.concatenate([row, brow]),
         col=np.concatenate([col, bcol]),
-        intensity=np.ones((L_up + L_b, 3)),
+        intensity=np.full((L_up + L_b, 3), LED_INTENSITY_W_SR),
         profile=_default_profile(L_up + L_b),
         diffuser_radius=np.full(L_up + L_b, 2.5),
         is_bottom=np.concatenate([np.zeros(L_up, bool), np.ones(L_b, bool)]),
@@ -152,7 +156,7 @@ def paper_rig() -> Rig:
         Board("bottom", "bottom", BOTTOM_GRID, BOTTOM_GRID)]
     return Rig("paper", leds, boards, _cameras(), SamplePlane(), holder_frame(), BottomBoard(),
                notes="Built from the released layout (reference §1). Bottom board and secondary camera "
-                     "are ASSUMED (no released data). LED intensity 1 (relative), cosine profile.")
+                     "are ASSUMED (no released data). LED intensity 0.05 W/sr (assumed), cosine profile.")
 
 
 def _default_profile(n: int) -> np.ndarray:

@@ -26,6 +26,11 @@ class SensorParams:
     prnu: float = 0.005  # photo-response non-uniformity, relative sigma
     dsnu_e: float = 0.3  # dark-signal non-uniformity, sigma in electrons
     black_level_dn: float = 16.0
+    # Radiometric sensitivity: photo-electrons per second per unit scene radiance (W m^-2 sr^-1) reaching
+    # one pixel. Derived for the modelled lens and sensor: image-plane irradiance E = pi L / (4 N^2) at
+    # f-number N = 8, times the pixel area (2.74 um)^2, divided by the photon energy at 550 nm
+    # (3.61e-19 J), times a quantum efficiency of 0.65: 1.66e5 e-/s. ASSUMED (no released radiometry).
+    electrons_per_radiance_s: float = 1.66e5
     vignetting: tuple[float, float, float] = (0.0, 0.0, 0.0)  # radial: 1 + a r^2 + b r^4 + c r^6, r normalised
     crosstalk: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
@@ -34,7 +39,7 @@ class SensorParams:
             raise ValueError(f"sensor bit_depth must be 8, 10, 12 or 16, got {self.bit_depth}")
         if self.bayer not in ("RG", "GR", "GB", "BG"):
             raise ValueError(f"sensor bayer must be one of RG, GR, GB, BG, got {self.bayer!r}")
-        for name in ("pixel_pitch_um", "gain_e_per_dn", "full_well_e"):
+        for name in ("pixel_pitch_um", "gain_e_per_dn", "full_well_e", "electrons_per_radiance_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"sensor {name} must be a positive finite number, got {v}")
