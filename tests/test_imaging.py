@@ -94,7 +94,7 @@ def test_rendered_markers_detected_where_projected(mini):
         corners, ids, _ = det.detectMarkers(g)
         in_view = [i for i, c in zip(mini.frame.marker_ids, mini.frame.marker_corners)
                    if np.all((cam.project(c)[0] > 3) & (cam.project(c)[0] < [cam.width - 4, cam.height - 4]))]
-        assert len(in_view) >= 6, cam_name  # the primary's field cuts the two markers on the -x side
+        assert len(in_view) >= 5, cam_name  # the primary's field cuts the -x side markers at the image edge
         assert ids is not None and set(in_view) <= set(ids.ravel().tolist()), (cam_name, ids.ravel(), in_view)
         for c, i in zip(corners, ids.ravel()):
             uv, _ = cam.project(mini.frame.marker_corners[i])
