@@ -78,29 +78,39 @@ def test_mitsuba_lambertian_plate_under_one_led(mini):
 
 
 def test_rendered_markers_detected_where_projected(mini):
-    """OpenCV's ArUco detector finds every holder-frame marker in view in a uniformly lit render, at the corners
-    that Camera.project gives for the rig's marker geometry (<= 1 px at the mini rig's 1/12 resolution:
-    markers are ~30 px wide and the detector refines corners to sub-pixel)."""
+    """OpenCV's ArUco detector finds every holder-frame marker in view in a uniformly lit render, at the
+    corners that Camera.project gives for the rig's marker geometry (mean <= 0.5 px, max <= 1.5 px). Rendered at twice the mini
+    rig's resolution (the 45 deg view foreshortens a 6x6 marker to ~2.6 px per cell at 1/12 resolution,
+    below what the detector resolves), lit by the top boards only to keep it fast."""
     import cv2
 
+    top = np.isin(mini.leds.board, [1, 2])
+    rig = replace(mini, leds=mini.leds.subset(top), cameras={n: c.resized(2) for n, c in mini.cameras.items()})
     for cam_name in ("primary", "secondary"):
-        cam = mini.camera(cam_name)
-        surfaces = trace_pixels(mini, cam_name, uniform_maps(), supersample=2)
-        w = np.where(mini.is_bottom, 0.0, 1.0)[None]
-        img = render(mini, cam_name, surfaces, w)[0].mean(-1)
+        cam = rig.camera(cam_name)
+        surfaces = trace_pixels(rig, cam_name, uniform_maps(), supersample=2)  # anti-aliased marker edges
+        img = render(rig, cam_name, surfaces, np.ones((1, rig.num_leds)))[0].mean(-1)
         g = np.clip(img / np.percentile(img, 99) * 255, 0, 255).astype(np.uint8)
-        det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250),
-                                      cv2.aruco.DetectorParameters())
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250), params)
         corners, ids, _ = det.detectMarkers(g)
-        in_view = [i for i, c in zip(mini.frame.marker_ids, mini.frame.marker_corners)
+        in_view = [i for i, c in zip(rig.frame.marker_ids, rig.frame.marker_corners)
                    if np.all((cam.project(c)[0] > 3) & (cam.project(c)[0] < [cam.width - 4, cam.height - 4]))]
         assert len(in_view) >= 5, cam_name  # the primary's field cuts the -x side markers at the image edge
-        assert ids is not None and set(in_view) <= set(ids.ravel().tolist()), (cam_name, ids.ravel(), in_view)
+        assert ids is not None and set(in_view) <= set(ids.ravel().tolist()), (cam_name, ids, in_view)
+        errors = []
         for c, i in zip(corners, ids.ravel()):
-            uv, _ = cam.project(mini.frame.marker_corners[i])
+            if i not in in_view:
+                continue
+            uv, _ = cam.project(rig.frame.marker_corners[i])
             # the detector's corner order follows the marker image; compare as sets of points
-            d = np.linalg.norm(c[0][:, None] - uv[None], axis=-1).min(axis=1)
-            assert d.max() <= 1.0, (cam_name, i, d)
+            errors.append(np.linalg.norm(c[0][:, None] - uv[None], axis=-1).min(axis=1))
+        errors = np.concatenate(errors)
+        # Sub-pixel corner refinement on a 2x2-supersampled render: typically 0.1-0.4 px, up to ~1 px on
+        # the 45 deg view's foreshortened corners. A geometric error (K, pose, axis swap, marker layout)
+        # shows as several pixels or as wrong / missing ids.
+        assert errors.mean() <= 0.5 and errors.max() <= 1.5, (cam_name, errors)
 
 
 def test_pixel_texel_ground_truth_matches_projection(mini):

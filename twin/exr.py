@@ -65,7 +65,7 @@ def _compression(name: str):
     key = str(name).lower()
     if key not in COMPRESSIONS:
         raise ExrError(f"unknown EXR compression {name!r}; expected one of {', '.join(COMPRESSIONS)}")
-    return getattr(OpenEXR, f"{key.upper()}_COMPRESSION")
+    return getattr(OpenEXR, "NO_COMPRESSION" if key == "none" else f"{key.upper()}_COMPRESSION")
 
 
 def _natural_key(name: str):
@@ -122,8 +122,8 @@ def _prepare_channels(path: Path, channels: Mapping[str, np.ndarray], half: bool
             finite = np.isfinite(a64)
             if np.any(finite & (np.abs(a64) > _HALF_MAX)):
                 idx = tuple(int(i) for i in np.argwhere(finite & (np.abs(a64) > _HALF_MAX))[0])
-                raise ExrError(f"{path}: channel {name!r} value {a64[idx]} at (row {idx[0]}, col {idx[1]}) "
-                               f"exceeds the half-float range ±{_HALF_MAX}; write with half=False")
+                raise ExrError(f"{path}: channel {name!r} value {a64[idx]:g} at (row {idx[0]}, col {idx[1]}) "
+                               f"exceeds the half-float range ±{_HALF_MAX:g}; write with half=False")
             a = a.astype(np.float16)
         else:
             a = a.astype(np.float32)

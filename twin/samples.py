@@ -41,7 +41,7 @@ import os
 import shutil
 import tempfile
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -637,7 +637,6 @@ def builtin_sample(name: str, resolution: int = 128, seed: int = 0,
     return SVBRDFMaps(**maps, size_mm=size_mm, name=name)
 
 
-_ramps_doc = _ramps.__doc__
 builtin_sample.__doc__ += "\n\n" + "\n\n".join(f"{k}: {_BUILDERS[k].__doc__}" for k in BUILTIN_SAMPLES)
 
 

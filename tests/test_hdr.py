@@ -1,0 +1,156 @@
+"""twin.hdr: bracket choice and the noise-optimal merge, on frames from twin.sensor.simulate_raw.
+
+Error bound used below (the noise model of twin.hdr): a photosite's merged value has predicted
+standard deviation sigma = 1 / sqrt(weights_sum) from shot, read and quantisation noise; the fixed
+PRNU pattern (relative sigma `prnu`, the same in every frame) adds prnu * L, so the predicted relative
+error is sqrt(1 / (weights_sum L^2) + prnu^2). The z-scores of the merge against the truth must have
+unit spread, and the RMS relative error in every decade of radiance must match that prediction.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from twin.bayer import demosaic, mosaic
+from twin.camera import SensorParams
+from twin.hdr import choose_bracket, frame_radiance, merge_hdr, saturation_threshold_dn
+from twin.sensor import expected_dn, saturation_electrons, saturation_radiance, simulate_raw
+
+S = SensorParams()
+H, W = 192, 256
+L_MIN, L_MAX = 1e-3, 1e2  # 1e5 dynamic range
+
+
+def _sim(rad, ts, sensor=S, seed=11):
+    return [simulate_raw(rad, sensor=sensor, exposure_s=t, seed=seed, frame=i, camera_key="cam0")
+            for i, t in enumerate(ts)]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A log ramp from 1e-3 to 1e2 along the columns, tinted per channel, bracketed with
+    choose_bracket (5 frames, x8 apart), simulated and merged."""
+    logL = np.linspace(np.log10(L_MIN), np.log10(L_MAX), W)
+    rad = (10 ** logL[None, :, None] * np.array([1.0, 0.8, 0.6])[None, None, :] * np.ones((H, 1, 1))).astype(np.float32)
+    ts = choose_bracket(float(rad.max()), S, n=5, ratio=8.0)
+    raws = _sim(rad, ts)
+    res = merge_hdr(raws, ts, S)
+    true = mosaic(rad.astype(np.float64), S.bayer)
+    return rad, ts, raws, res, true
+
+
+def test_choose_bracket():
+    ts = choose_bracket(50.0, S, n=4, ratio=4.0)
+    assert len(ts) == 4
+    np.testing.assert_allclose(np.array(ts[1:]) / np.array(ts[:-1]), 4.0)
+    # the brightest radiance fills 80% of the saturation signal (here the ADC top: 4079 DN) in the shortest
+    dn = expected_dn(np.full((2, 2, 3), 50.0), S, ts[0])
+    assert dn.mean() == pytest.approx(S.black_level_dn + 0.8 * saturation_electrons(S) / S.gain_e_per_dn)
+    assert 50.0 < saturation_radiance(S, ts[0])
+    with pytest.raises(ValueError):
+        choose_bracket(0.0, S)
+    with pytest.raises(ValueError):
+        choose_bracket(1.0, S, ratio=1.0)
+
+
+def test_hdr_recovers_radiance_over_1e5(scene):
+    rad, ts, raws, res, true = scene
+    assert res.radiance.shape == (H, W, 3) and res.radiance.dtype == np.float32
+    assert not res.saturated_mask.any()
+    assert res.frames_used.min() >= 1
+    sigma2 = 1.0 / res.weights_sum.astype(np.float64) + (S.prnu * true) ** 2
+    z = (res.mosaic - true) / np.sqrt(sigma2)
+    # unit spread, no bias, no outliers (N = 49k photosites: |z| > 5.5 has probability ~2e-3)
+    assert z.std() == pytest.approx(1.0, abs=0.04), z.std()
+    assert abs(z.mean()) < 0.03
+    assert np.abs(z).max() < 5.5
+    rel = (res.mosaic - true) / true
+    for lo in range(-3, 2):  # every decade of the 1e5 range
+        m = (true >= 10.0 ** lo) & (true < 10.0 ** (lo + 1))
+        predicted = np.sqrt(np.mean(sigma2[m] / true[m] ** 2))
+        measured = np.sqrt(np.mean(rel[m] ** 2))
+        assert measured == pytest.approx(predicted, rel=0.08), (lo, measured, predicted)
+        assert predicted < 0.05  # the bound: < 5% RMS in every decade (3.4% in the darkest, ~1.8% above)
+    # demosaiced output: in a smooth ramp, within a few sigma of the truth too
+    rel_rgb = (res.radiance[2:-2, 2:-2] - rad[2:-2, 2:-2]) / rad[2:-2, 2:-2]
+    assert np.sqrt(np.mean(rel_rgb ** 2)) < 0.03
+
+
+def test_hdr_better_than_any_single_exposure(scene):
+    rad, ts, raws, res, true = scene
+    rms_merged = np.sqrt(np.mean(((res.mosaic - true) / true) ** 2))
+    thr = saturation_threshold_dn(S)
+    for lo in range(-3, 2):
+        m = (true >= 10.0 ** lo) & (true < 10.0 ** (lo + 1))
+        merged = np.sqrt(np.mean(((res.mosaic[m] - true[m]) / true[m]) ** 2))
+        singles = []
+        for r, t in zip(raws, ts):
+            if np.all(r[m] < thr):  # only exposures that are unsaturated over the whole decade
+                singles.append(np.sqrt(np.mean(((frame_radiance(r, t, S)[m] - true[m]) / true[m]) ** 2)))
+        assert singles and merged <= min(singles) * 1.02, (lo, merged, singles)
+    for r, t in zip(raws, ts):  # over the whole scene each single exposure is far worse
+        single = np.sqrt(np.mean(((frame_radiance(r, t, S) - true) / true) ** 2))
+        assert rms_merged < 0.1 * single
+
+
+def test_saturated_everywhere_mask():
+    ts = [0.001, 0.004]
+    L_sat = saturation_radiance(S, ts[0])
+    rad = np.full((32, 32, 3), 0.2 * L_sat, np.float32)
+    rad[8:16, 10:20] = 3 * L_sat  # saturated in both frames
+    rad[20:24, 4:8, 1] = 3 * L_sat  # only green saturated
+    raws = _sim(rad, ts)
+    res = merge_hdr(raws, ts, S)
+    true = mosaic(rad.astype(np.float64), S.bayer)
+    expected = true > L_sat
+    np.testing.assert_array_equal(res.saturated_mask, expected)
+    assert np.all(res.weights_sum[expected] == 0) and np.all(res.weights_sum[~expected] > 0)
+    # the shortest exposure's clipped estimate, a lower bound
+    np.testing.assert_allclose(res.mosaic[expected], frame_radiance(raws[0], ts[0], S)[expected], rtol=1e-6)
+    assert np.all(res.mosaic[expected] < true[expected])
+    # demosaiced values depending on such a photosite are flagged
+    np.testing.assert_array_equal(res.clipped, demosaic(expected.astype(float), S.bayer) > 0)
+    assert res.clipped[11, 14].all() and not res.clipped[2, 2].any()
+    # elsewhere the merge is accurate (0.2 L_sat reaches 80% of saturation in the x4 frame: unsaturated)
+    ok = ~res.clipped.any(axis=2)
+    assert np.abs(res.radiance[ok] / rad[ok] - 1).mean() < 0.02
+
+
+def test_threshold_bias_is_bounded():
+    """The known limitation: photosites whose long-exposure mean sits at the exclusion threshold are
+    biased low by truncation of that frame's noise (~0.8 sigma x its weight share); measured -0.4%
+    (sigma of one site there is ~1%); 5% below the threshold there is no bias."""
+    s = replace(S, prnu=0.0, dsnu_e=0.0)
+    ts = [0.001, 0.008]
+    e_thr = (saturation_threshold_dn(s) - s.black_level_dn) * s.gain_e_per_dn
+    L_at = e_thr / (s.electrons_per_radiance_s * ts[1])
+    rad = np.ones((128, 256, 3), np.float32)
+    rad[:64] *= 0.95 * L_at
+    rad[64:] *= L_at
+    res = merge_hdr(_sim(rad, ts, s), ts, s)
+    true = mosaic(rad.astype(np.float64), s.bayer)
+    rel = res.mosaic / true - 1
+    se = rel[:64].std() / np.sqrt(rel[:64].size)
+    assert abs(rel[:64].mean()) < 4 * se
+    assert -0.006 < rel[64:].mean() < -0.002
+
+
+def test_merge_units_and_errors():
+    # a single unsaturated frame: the merge is that frame's radiance estimate, in input units
+    rad = np.full((16, 16, 3), 0.5, np.float32)
+    r = _sim(rad, [0.01])
+    res = merge_hdr(r, [0.01], S)
+    np.testing.assert_allclose(res.mosaic, frame_radiance(r[0], 0.01, S), rtol=1e-6)
+    assert abs(res.radiance.mean() / 0.5 - 1) < 0.01
+    with pytest.raises(ValueError, match="exposures"):
+        merge_hdr(r, [0.01, 0.02], S)
+    with pytest.raises(TypeError, match="uint16"):
+        merge_hdr([r[0].astype(np.int32)], [0.01], S)
+    with pytest.raises(ValueError, match="positive"):
+        merge_hdr(r, [0.0], S)
+    with pytest.raises(ValueError, match="shape"):
+        merge_hdr([r[0], r[0][:8]], [0.01, 0.02], S)
+    with pytest.raises(ValueError, match="at least one"):
+        merge_hdr([], [], S)

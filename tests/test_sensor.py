@@ -1,0 +1,242 @@
+"""twin.sensor: the raw-frame simulator against its noise model (means, photon-transfer variances,
+fixed patterns, clipping, CFA), determinism, and the numpy optics helpers.
+
+Noise model of one pixel in DN (g electrons per DN, mu mean electrons incl. dark signal):
+    temporal variance  = (mu + read_noise^2) / g^2 + 1/12        (shot, read, quantisation)
+    fixed patterns     = (PRNU mu)^2 / g^2 + dsnu^2 / g^2        (spatial only, cancel in frame differences)
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from twin.bayer import cfa_index
+from twin.camera import Camera, SensorParams
+from twin.sensor import (GAUSS_LAMBDA, apply_crosstalk, apply_optics, apply_vignetting, effective_gain,
+                         expected_dn, fixed_pattern, saturation_radiance, simulate_raw, vignetting_factor)
+
+S = SensorParams()  # IMX540-like defaults: 12 bit, RG, 2.4 e/DN, FW 9800 e, read 2.3 e, black 16 DN
+H = W = 128
+T = 0.01
+
+
+def flat(level_e, sensor=S, t=T, h=H, w=W):
+    """A flat grey radiance whose mean signal is `level_e` photo-electrons (before dark current)."""
+    return np.full((h, w, 3), level_e / (sensor.electrons_per_radiance_s * t), np.float32)
+
+
+def sim(rad, sensor=S, t=T, seed=1, frame=0, key="cam0", gain_db=0.0):
+    return simulate_raw(rad, sensor=sensor, exposure_s=t, gain_db=gain_db, seed=seed, frame=frame, camera_key=key)
+
+
+def model(sensor, mu_e, t=T, gain_db=0.0):
+    """(temporal variance, fixed-pattern variance) in DN^2 of a pixel with mean mu_e photo-electrons."""
+    g = effective_gain(sensor, gain_db)
+    mu = mu_e + sensor.dark_current_e_per_s * t
+    temporal = (mu + sensor.read_noise_e ** 2) / g ** 2 + 1 / 12
+    fpn = ((sensor.prnu * mu_e) ** 2 + sensor.dsnu_e ** 2) / g ** 2
+    return temporal, fpn
+
+
+# --- statistics -------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sensor, level_e", [
+    (S, 0.0),  # dark frame: black level + dark signal
+    (S, 3.0),  # Poisson by multiplication (lambda < 10)
+    (S, 800.0),  # Poisson, transformed rejection
+    (S, 6000.0),
+    # a deep-well 16-bit sensor to reach both sides of the Gaussian switch at 1e4 electrons
+    (SensorParams(bit_depth=16, gain_e_per_dn=8.0, full_well_e=3e5, black_level_dn=200.0), 0.95 * GAUSS_LAMBDA),
+    (SensorParams(bit_depth=16, gain_e_per_dn=8.0, full_well_e=3e5, black_level_dn=200.0), 5e4),
+])
+def test_flat_field_mean_and_photon_transfer_variance(sensor, level_e):
+    rad = flat(level_e, sensor)
+    a = sim(rad, sensor, frame=0).astype(np.float64)
+    b = sim(rad, sensor, frame=1).astype(np.float64)
+    exp = expected_dn(rad, sensor, T)
+    assert np.ptp(exp) == 0
+    temporal, fpn = model(sensor, level_e)
+    N = a.size
+    # spatial mean of one frame: within 3 sigma / sqrt(N) of the noise-free mean
+    assert abs(a.mean() - exp.mean()) < 3 * np.sqrt((temporal + fpn) / N), (a.mean(), exp.mean())
+    # temporal variance from the frame difference (fixed patterns cancel): within 10% of the model
+    var_t = np.var(a - b) / 2
+    assert var_t == pytest.approx(temporal, rel=0.10), (var_t, temporal)
+    # spatial variance of one frame includes the fixed patterns
+    assert a.var() == pytest.approx(temporal + fpn, rel=0.10)
+
+
+def test_black_level_at_zero_light():
+    a = sim(np.zeros((H, W, 3), np.float32)).astype(np.float64)
+    temporal, fpn = model(S, 0.0)
+    assert abs(a.mean() - (S.black_level_dn + S.dark_current_e_per_s * T / S.gain_e_per_dn)) < 3 * np.sqrt((temporal + fpn) / a.size)
+    assert a.min() >= S.black_level_dn - 6 and a.max() <= S.black_level_dn + 6
+    # no black level: the ADC clips at 0, the mean rises above the true 0
+    z = sim(np.zeros((H, W, 3), np.float32), replace(S, black_level_dn=0.0)).astype(np.float64)
+    assert z.min() == 0 and 0.2 < z.mean() < 0.6
+
+
+def test_saturation_adc_and_full_well():
+    # 0 dB: the ADC top (4095 DN = 9790 e above black) comes before the 9800 e full well
+    L_sat = saturation_radiance(S, T)
+    assert L_sat * S.electrons_per_radiance_s * T + S.dark_current_e_per_s * T == pytest.approx((4095 - 16) * 2.4)
+    raw = sim(np.full((H, W, 3), 3 * L_sat, np.float32))
+    assert np.all(raw == 4095)
+    assert np.all(expected_dn(np.full((2, 2, 3), 3 * L_sat), S, T) == 4095)
+    # -6 dB: the full well clips first, at round(9800 / g + 16) DN, noise-free (clipping follows readout)
+    g = effective_gain(S, -6.0)
+    assert g == pytest.approx(2.4 * 10 ** 0.3)
+    fw_dn = np.floor(S.full_well_e / g + S.black_level_dn + 0.5)
+    raw = sim(np.full((H, W, 3), 3 * saturation_radiance(S, T, -6.0), np.float32), gain_db=-6.0)
+    assert np.all(raw == fw_dn) and fw_dn < 4095
+    # just below saturation most pixels are not clipped, just above nearly all are
+    below = sim(np.full((H, W, 3), 0.97 * L_sat, np.float32))
+    above = sim(np.full((H, W, 3), 1.03 * L_sat, np.float32))
+    assert np.mean(below == 4095) < 0.01 and np.mean(above == 4095) > 0.99
+
+
+def test_gain_db_scales_dn_per_electron():
+    rad = flat(500.0)
+    m0 = sim(rad).astype(np.float64).mean() - S.black_level_dn
+    m6 = sim(rad, gain_db=20 * np.log10(2)).astype(np.float64).mean() - S.black_level_dn
+    assert m6 / m0 == pytest.approx(2.0, rel=0.01)
+    assert expected_dn(rad, S, T, gain_db=20 * np.log10(2)).mean() - 16 == pytest.approx(
+        2 * (expected_dn(rad, S, T).mean() - 16))
+
+
+@pytest.mark.parametrize("pattern", ["RG", "GR", "GB", "BG"])
+def test_cfa_colour_assignment(pattern):
+    sensor = replace(S, bayer=pattern)
+    idx = cfa_index(pattern, 16, 16)
+    for c in range(3):
+        rad = np.zeros((16, 16, 3), np.float32)
+        rad[..., c] = 2000.0 / (S.electrons_per_radiance_s * T)  # 2000 e on channel c only
+        raw = sim(rad, sensor).astype(np.float64)
+        lit = raw > S.black_level_dn + 100
+        np.testing.assert_array_equal(lit, idx == c)
+        assert raw[idx == c].mean() == pytest.approx(expected_dn(rad, sensor, T)[idx == c].mean(), rel=0.02)
+    if pattern == "RG":
+        assert idx[:2, :2].tolist() == [[0, 1], [1, 2]]  # R at (0,0), G at (0,1) and (1,0), B at (1,1)
+
+
+# --- fixed patterns -----------------------------------------------------------------------------------
+def test_fixed_patterns_per_camera():
+    big = replace(S, prnu=0.05, dsnu_e=0.0, read_noise_e=0.0, dark_current_e_per_s=0.0)
+    gain, off = fixed_pattern(big, "cam0", H, W)
+    gain2, _ = fixed_pattern(big, "cam0", H, W)
+    np.testing.assert_array_equal(gain, gain2)
+    assert gain.std() == pytest.approx(0.05, rel=0.05) and abs(gain.mean() - 1) < 0.002
+    np.testing.assert_array_equal(off, 0.0)
+    _, off_d = fixed_pattern(S, "cam0", H, W)
+    assert off_d.std() == pytest.approx(S.dsnu_e, rel=0.05)
+    other, _ = fixed_pattern(big, "cam1", H, W)
+    assert abs(np.corrcoef(gain.ravel(), other.ravel())[0, 1]) < 0.03
+
+    # the simulated frames carry the pattern: 5% PRNU at 5000 e is 250 e against 71 e of shot noise,
+    # so frames correlate at ~250^2 / (250^2 + 71^2) = 0.93 whatever the seed and frame
+    rad = flat(5000.0, big)
+    a = sim(rad, big, seed=1, frame=0).astype(np.float64).ravel()
+    b = sim(rad, big, seed=99, frame=7).astype(np.float64).ravel()
+    c = sim(rad, big, seed=1, frame=0, key="cam1").astype(np.float64).ravel()
+    assert np.corrcoef(a, b)[0, 1] > 0.88
+    assert np.corrcoef(a, gain.ravel())[0, 1] > 0.93
+    assert abs(np.corrcoef(a, c)[0, 1]) < 0.03
+    assert np.corrcoef(c, other.ravel())[0, 1] > 0.93
+
+
+def test_frames_differ_and_noise_is_independent():
+    rad = flat(1000.0)
+    a, b = sim(rad, frame=0).astype(np.float64), sim(rad, frame=1).astype(np.float64)
+    assert np.mean(a != b) > 0.8
+    ta, tb = a - expected_dn(rad, S, T), b - expected_dn(rad, S, T)
+    # with the fixed pattern in common, residual correlation is fpn / (temporal + fpn) ~ 0.1
+    temporal, fpn = model(S, 1000.0)
+    assert np.corrcoef(ta.ravel(), tb.ravel())[0, 1] == pytest.approx(fpn / (temporal + fpn), abs=0.03)
+    # neighbouring pixels are uncorrelated
+    assert abs(np.corrcoef(ta[:, :-1].ravel(), ta[:, 1:].ravel())[0, 1]) < 0.03
+
+
+# --- determinism ----------------------------------------------------------------------------------
+def _sha(a):
+    return hashlib.sha256(a.tobytes()).hexdigest()
+
+
+def test_determinism_bytes():
+    rng = np.random.default_rng(3)
+    rad = rng.uniform(0, 3 * saturation_radiance(S, T), size=(64, 96, 3)).astype(np.float32)
+    h = _sha(sim(rad, seed=42, frame=3))
+    assert h == _sha(sim(rad, seed=42, frame=3))
+    assert h == _sha(sim(rad.astype(np.float64), seed=42, frame=3))
+    others = {_sha(sim(rad, seed=43, frame=3)), _sha(sim(rad, seed=42, frame=4)),
+              _sha(sim(rad, seed=42, frame=3, key="cam1")), _sha(sim(rad, seed=2**40 + 42, frame=3))}
+    assert h not in others and len(others) == 4
+
+
+def test_noise_is_a_function_of_the_pixel_not_the_launch():
+    """The random state of a pixel depends on (seed, frame, camera, row, col) only: a crop of the
+    radiance gives exactly the same raw values at the same sensor positions."""
+    rng = np.random.default_rng(4)
+    rad = rng.uniform(0, saturation_radiance(S, T), size=(48, 64, 3)).astype(np.float32)
+    full = sim(rad, seed=7, frame=2)
+    np.testing.assert_array_equal(sim(rad[:20, :30], seed=7, frame=2), full[:20, :30])
+
+
+# --- errors ---------------------------------------------------------------------------------------
+def test_input_errors():
+    rad = flat(100.0, h=4, w=4)
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        sim(rad[..., :2])
+    bad = rad.copy()
+    bad[0, 0, 0] = -1
+    with pytest.raises(ValueError, match=">= 0"):
+        sim(bad)
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        sim(bad)
+    with pytest.raises(ValueError, match="exposure"):
+        sim(rad, t=0.0)
+    with pytest.raises(TypeError, match="seed"):
+        sim(rad, seed=True)
+    with pytest.raises(TypeError, match="frame"):
+        sim(rad, frame=1.5)
+    with pytest.raises(TypeError, match="camera_key"):
+        sim(rad, key="")
+
+
+# --- optics helpers ---------------------------------------------------------------------------------
+def test_vignetting_hand_worked():
+    K = np.array([[100.0, 0, 1.5], [0, 100.0, 0.5], [0, 0, 1]])  # principal point at the centre of 4x2
+    f = vignetting_factor(K, 4, 2, (-0.2, 0.1, -0.05))
+    # corner (0, 0): r^2 = (1.5^2 + 0.5^2) / (0.25 * (4^2 + 2^2)) = 2.5 / 5 = 0.5
+    assert f[0, 0] == pytest.approx(1 - 0.2 * 0.5 + 0.1 * 0.25 - 0.05 * 0.125)
+    # (row 0, col 1): r^2 = (0.25 + 0.25) / 5 = 0.1
+    assert f[0, 1] == pytest.approx(1 - 0.02 + 0.001 - 0.00005)
+    np.testing.assert_allclose(f, f[::-1, ::-1])
+    rgb = np.ones((2, 4, 3), np.float32) * np.array([1, 2, 3], np.float32)
+    ff = np.full((2, 4), 0.5)
+    out = apply_vignetting(rgb, K, 4, 2, (-0.2, 0.1, -0.05), flat_field=ff)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, rgb * (f * 0.5)[..., None], rtol=1e-6)
+    np.testing.assert_array_equal(apply_vignetting(rgb, K, 4, 2, (0, 0, 0)), rgb)
+    with pytest.raises(ValueError):
+        apply_vignetting(rgb, K, 2, 4, (0, 0, 0))
+    with pytest.raises(ValueError, match=">= 0"):
+        apply_vignetting(rgb, K, 4, 2, (-5.0, 0, 0))
+
+
+def test_crosstalk_and_optics_from_camera():
+    M = ((0.9, 0.1, 0.0), (0.05, 0.9, 0.05), (0.0, 0.2, 0.8))
+    rgb = np.zeros((2, 2, 3))
+    rgb[0, 0] = (1, 0, 0)
+    rgb[1, 1] = (1, 2, 3)
+    out = apply_crosstalk(rgb, M)
+    np.testing.assert_allclose(out[0, 0], (0.9, 0.05, 0.0))
+    np.testing.assert_allclose(out[1, 1], (0.9 + 0.2, 0.05 + 1.8 + 0.15, 0.4 + 2.4))
+    np.testing.assert_array_equal(out[0, 1], 0)
+    cam = Camera("c", 4, 2, [[100.0, 0, 1.5], [0, 100.0, 0.5], [0, 0, 1]], np.zeros(5), np.eye(3), np.zeros(3),
+                 sensor=replace(S, crosstalk=M, vignetting=(-0.2, 0.0, 0.0)))
+    rgb = np.random.default_rng(0).uniform(size=(2, 4, 3))
+    np.testing.assert_allclose(apply_optics(rgb, cam),
+                               apply_crosstalk(rgb, M) * vignetting_factor(cam.K, 4, 2, (-0.2, 0, 0))[..., None])
