@@ -99,6 +99,27 @@ def cmd_show_pattern(args) -> int:
     return 0
 
 
+def cmd_capture(args) -> int:
+    from .capture import capture, verify
+
+    learned = None
+    if args.patterns:
+        from .patterns import load_patterns
+
+        learned = load_patterns(args.patterns)
+    rig = _rig_arg(args.rig)
+    if learned is not None:
+        learned.check_rig(rig)
+    out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
+                  resolution=args.resolution, learned=learned, progress=not args.no_progress)
+    bad = verify(out)
+    if bad:
+        print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)
+        return 1
+    print(f"capture complete: {out} (manifest verified)")
+    return 0
+
+
 def cmd_validate(args) -> int:
     from .validate import run_validation
 
@@ -146,6 +167,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rig", help="rig (default: the one the pattern file names)")
     s.add_argument("--index", type=int, help="only this frame")
     s.set_defaults(func=cmd_show_pattern)
+
+    s = sub.add_parser("capture", help="run the capture plan (193+ HDR photos) into a session folder")
+    s.add_argument("--backend", default="sim", help="device backend (sim; real hardware backends later)")
+    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder")
+    s.add_argument("--sample", default="ramps", help="built-in sample (ramps, brushed_metal, satin_weave) or a "
+                   "folder of OpenSVBRDF maps")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--resolution", type=int, default=128, help="texture resolution of a built-in sample")
+    s.add_argument("--device", default="cpu")
+    s.add_argument("--patterns", help="pattern file with the 64 learned frames (default: a seeded placeholder)")
+    s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_capture)
 
     s = sub.add_parser("validate", help="the main job: check the twin end to end and report")
     s.add_argument("--rig", default="mini")

@@ -16,7 +16,9 @@ Conventions
       order) and the others in natural order (L_0, L_1, …, L_10, not L_0, L_1, L_10).
     * Pixels are written as FLOAT (float32) or, with half=True, HALF (float16; relative rounding error
       ≤ 2⁻¹¹ ≈ 4.9e-4, values beyond ±65504 become ±Inf, which is refused). Float32 round trips are
-      bit-exact. Reading always returns float32 (HALF widened exactly); UINT channels are refused.
+      bit-exact with the lossless compressions ("none", "zip" (default), "zips", "piz", "rle"); "pxr24",
+      "b44", "b44a", "dwaa" and "dwab" are lossy. Reading always returns float32 (HALF widened exactly);
+      UINT channels are refused.
     * Custom attributes: str, int, float (stored as a 32-bit float by OpenEXR: ~7 significant digits),
       lists of floats. Standard header names (channels, compression, dataWindow, …) cannot be used.
     * Writing is atomic (`twin.atomic.atomic_path`): a failed write leaves the old file (if any) and no

@@ -139,6 +139,13 @@ def make_options(rig, arrays: RigArrays, convention: str, g: str, fresnel: str, 
     o.use_visibility = int(bool(use_vis) and arrays.mesh is not None)
     o.mesh = arrays.mesh.id if arrays.mesh is not None else wp.uint64(0)
     o.ray_offset = 1e-3  # mm: far above float32 rounding of positions (~3e-5 mm), far below any occluder size
+    o.plane_origin = wp.vec3(*rig.sample.origin)
+    o.plane_x = wp.vec3(*rig.sample.x_axis)
+    o.plane_y = wp.vec3(*rig.sample.y_axis)
+    if arrays.mesh is not None:  # the frame: a ring of height h around a square window (HolderFrame.mesh)
+        o.occluder_top = rig.frame.height
+        o.occluder_outer = rig.frame.outer_size / 2 + 1e-3  # margins: float32 rounding of mm coordinates
+        o.occluder_hole = rig.frame.inner_size / 2 - 1e-3
     return o
 
 

@@ -58,7 +58,14 @@ class PixelSurfaces:
         """(H, W, 2) the true texel coordinate of each pixel's central ray (the ground-truth sidecar)."""
         S = self.supersample
         t = self.texel.reshape(self.height, self.width, S * S, 2)
-        return np.nanmean(t, axis=2) if S > 1 else t[:, :, 0]
+        if S == 1:
+            return t[:, :, 0]
+        with np.errstate(invalid="ignore"):  # all-NaN off the sample: the mean is NaN, as intended
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                return np.nanmean(t, axis=2)
 
 
 def choose_supersampling(camera, sample_plane, texel_mm: float, limit: int = 4) -> int:
@@ -88,8 +95,8 @@ def trace_pixels(rig, camera_name: str, maps=None, supersample: int | None = Non
     sp = rig.sample
     o, n = np.asarray(sp.origin), np.asarray(sp.normal)
     xa, ya = np.asarray(sp.x_axis), sp.y_axis
-    texel_mm = maps.size_mm / maps.rho_d.shape[1] if maps is not None else sp.max_size / 256
-    S = supersample or choose_supersampling(cam, sp, texel_mm)
+    # no texture to filter on the empty board: one ray per pixel
+    S = supersample or (choose_supersampling(cam, sp, maps.size_mm / maps.rho_d.shape[1]) if maps is not None else 1)
     H, W = cam.height, cam.width
     sub = (np.arange(S) + 0.5) / S - 0.5  # stratified sub-pixel offsets, fixed: deterministic
     v, u, sv, su = np.meshgrid(np.arange(H), np.arange(W), sub, sub, indexing="ij")
@@ -189,12 +196,13 @@ def _bilinear(maps, row, col) -> dict:
 
 
 def render(rig, camera_name: str, surfaces: PixelSurfaces, patterns: np.ndarray, *, device="cpu",
-           chunk: int = 16384, **forward_kw) -> np.ndarray:
+           chunk: int = 16384, flat_field: np.ndarray | None = None, **forward_kw) -> np.ndarray:
     """Step 4: radiance images (K, H, W, 3) float32 in W m^-2 sr^-1 under `patterns` (K, L, 3) relative
     drive (8-bit levels / 255). On CUDA the fused kernel is used; on the CPU lumitexels are materialised
     per chunk of rays and projected with one matrix product, which is faster there."""
     import twin
     from twin.forward import validate_patterns
+    from twin.sensor import apply_crosstalk, vignetting_factor
 
     cam = rig.camera(camera_name)
     w = validate_patterns(patterns, rig.num_leds).astype(np.float32)
@@ -216,16 +224,8 @@ def render(rig, camera_name: str, surfaces: PixelSurfaces, patterns: np.ndarray,
                 out[idx, :, c] = m[:, :, c] @ w[:, :, c].T
     S2 = surfaces.supersample ** 2
     img = out.reshape(surfaces.height, surfaces.width, S2, K, 3).mean(axis=2).transpose(2, 0, 1, 3)
-    xt = np.asarray(cam.sensor.crosstalk, np.float32)
-    img = img @ xt.T  # camera RGB = M @ LED RGB
-    return (img * vignetting(cam)[None, :, :, None]).astype(np.float32)
-
-
-def vignetting(cam, flat_field: np.ndarray | None = None) -> np.ndarray:
-    """(H, W) relative illumination: 1 + a r^2 + b r^4 + c r^6, r = distance from the principal point over
-    the half-diagonal, times an optional flat-field map."""
-    a, b, c = cam.sensor.vignetting
-    v, u = np.mgrid[0:cam.height, 0:cam.width]
-    r2 = ((u - cam.K[0, 2]) ** 2 + (v - cam.K[1, 2]) ** 2) / ((cam.width / 2) ** 2 + (cam.height / 2) ** 2)
-    g = 1 + r2 * (a + r2 * (b + r2 * c))
-    return g * flat_field if flat_field is not None else g
+    img = apply_crosstalk(img, cam.sensor.crosstalk)  # camera RGB = M @ LED RGB
+    gain = vignetting_factor(cam.K, cam.width, cam.height, cam.sensor.vignetting)
+    if flat_field is not None:
+        gain = gain * flat_field
+    return (img * gain[None, :, :, None]).astype(np.float32)

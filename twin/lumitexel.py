@@ -47,13 +47,35 @@ class Options:
     use_visibility: int
     mesh: wp.uint64
     ray_offset: float  # start visibility rays this far (rig units) off the surface
+    plane_origin: wp.vec3
+    plane_x: wp.vec3
+    plane_y: wp.vec3
+    occluder_top: float  # every occluder lies below this height above the sample plane, inside the
+    occluder_outer: float  # centred square of this half-size and outside the centred square window
+    occluder_hole: float  # of this half-size (the holder frame's ring)
 
 
 @wp.func
-def visible(mesh: wp.uint64, x: wp.vec3, wi: wp.vec3, r: float, offset: float):
-    """V(l, p): 1 when the segment from the point to the LED misses every occluder mesh."""
-    q = wp.mesh_query_ray(mesh, x + wi * offset, wi, r - offset)
-    return not q.result
+def visible(x: wp.vec3, wi: wp.vec3, r: float, o: Options):
+    """V(l, p): 1 when the segment from the point to the LED misses every occluder mesh. Exact shortcuts
+    first (the occluders fill at most the ring between two centred squares, below a height): a ray that
+    rises above that height before its horizontal travel can reach the ring cannot hit it, nor can a ray
+    leaving the ring's top face upwards. The remaining rays query the BVH (wp.Mesh)."""
+    q = x - o.plane_origin
+    h = wp.dot(q, o.plane_normal)
+    wn = wp.dot(wi, o.plane_normal)
+    if wn > 0.0:
+        climb = (o.occluder_top - h) / wn  # ray length until above every occluder
+        if climb <= o.ray_offset:
+            return True
+        travel = climb * wp.sqrt(wp.max(1.0 - wn * wn, 0.0))  # horizontal distance meanwhile
+        cheb = wp.max(wp.abs(wp.dot(q, o.plane_x)), wp.abs(wp.dot(q, o.plane_y)))
+        if cheb + travel < o.occluder_hole:  # stays inside the window
+            return True
+        if cheb - travel > o.occluder_outer:  # stays outside the ring (Euclidean >= Chebyshev distance)
+            return True
+    hit = wp.mesh_query_ray(o.mesh, x + wi * o.ray_offset, wi, r - o.ray_offset)
+    return not hit.result
 
 
 @wp.func
@@ -85,7 +107,7 @@ def led_response(x: Any, frame: Any, wo_l: Any, rho_d: Any, rho_s: Any, ax: Any,
         f = ggx_brdf(wi_l, wo_l, rho_d, rho_s, ax, ay, o.g_mode, o.f_mode, type(ax)(o.eta), type(ax)(o.eps))
         val = wp.cw_mul(li, f) * (a * wi_l[2] * inv_r2)
     if o.use_visibility != 0:
-        if not visible(o.mesh, wp.vec3(x), wp.vec3(wi), float(r), o.ray_offset):
+        if not visible(wp.vec3(x), wp.vec3(wi), float(r), o):
             return type(wi)(zero, zero, zero)
     return val * type(ax)(o.scale)
 

@@ -516,9 +516,10 @@ def _grid(res: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _brushed_metal(res: int, seed: int, size_mm: float) -> dict:
     """brushed_metal: grey steel with a slowly curving brushing direction (seeded global angle and two
-    sine undulations of the brush lines, ≤ ~25° of bend), the tangent (αx axis) along it.
+    sine undulations of the brush lines, ≤ ~25° of bend). The tangent (αx axis, the larger roughness) is
+    ACROSS the brushing: the grooves run along it, so their facets spread reflected light across it.
     ρd = 0.02 ± 0.005; ρs = 5 ± 0.7 streak noise (minus (0, 0.08, 0.2): slightly warm), i.e. in [4, 5.7];
-    αx = 0.30 ± 0.05 along the brushing, αy = 0.03 ± 0.01 (αx/αy ≥ 6.25 everywhere); the normal is
+    αx = 0.30 ± 0.05 across the brushing, αy = 0.03 ± 0.01 along it (αx/αy ≥ 6.25 everywhere); the normal is
     tilted across the streaks by < 2.5° (streak noise). All noise is constant along the brush lines
     (streaks) and varies at the texel scale across them."""
     rng = np.random.default_rng([seed, 1])
@@ -540,7 +541,7 @@ def _brushed_metal(res: int, seed: int, size_mm: float) -> dict:
     alpha = np.stack([0.30 + 0.05 * g_ax, 0.03 + 0.01 * g_ay], -1)
     across = np.cross([0.0, 0.0, 1.0], d)  # in-plane, perpendicular to the brushing
     normal = _unit_rows(np.array([0.0, 0.0, 1.0]) + np.tan(np.radians(2.5)) * g_n[..., None] * across)
-    tangent = _unit_rows(d - np.einsum("ijk,ijk->ij", d, normal)[..., None] * normal)
+    tangent = _unit_rows(across - np.einsum("ijk,ijk->ij", across, normal)[..., None] * normal)
     return dict(rho_d=rho_d, rho_s=rho_s, alpha=alpha, normal=normal, tangent=tangent,
                 transparency=np.zeros((res, res)))
 
