@@ -165,4 +165,76 @@ def run_bench(args) -> dict:
     if args.bench_command == "lumitexel":
         return bench_lumitexel(args.rig, args.device, args.leds, args.points, args.patterns, args.repeats,
                                not args.no_compile)
+    if args.bench_command == "capture":
+        return bench_capture(args.rig, args.device, args.sample, args.resolution, args.hdr_photos)
     raise ValueError(f"unknown benchmark {args.bench_command!r}")
+
+
+def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, hdr_photos=4, seed=0):
+    """Seconds for the capture plan's simulation (both views, every photo), by stage: pixel tracing,
+    radiance of every pattern (fused kernel, and the unfused baseline: materialised lumitexels per chunk
+    of rays, then a product with the patterns), sensor simulation of every raw frame, and the HDR merge
+    (timed on `hdr_photos` photos; the plan total is extrapolated from them and labelled so). File
+    writing is excluded."""
+    import warp as wp
+
+    import twin
+    from twin.backends import SimBackend
+    from twin.capture import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S, _frame_id, build_patterns, paper_plan
+    from twin.hdr import choose_bracket, merge_hdr
+    from twin.imaging import render, trace_pixels
+    from twin.samples import load_sample
+    from twin.sensor import simulate_raw
+
+    rig = twin.load_rig(rig_name)
+    maps = load_sample(sample, resolution=resolution)
+    patterns = build_patterns(rig)
+    plan = paper_plan(rig, patterns)
+    index = {n: k for k, n in enumerate(patterns.names)}
+    sync = (lambda: wp.synchronize_device(device)) if str(device).startswith("cuda") else (lambda: None)
+    res = {"benchmark": "capture", "rig": rig_name, "device": device, "sample": sample,
+           "sample_resolution": resolution, "photos": len(plan), "raw_frames": len(plan) * BRACKET,
+           "cameras": {n: [c.width, c.height] for n, c in rig.cameras.items()}}
+    t0 = time.perf_counter()
+    surf = {(kind, cam): trace_pixels(rig, cam, maps if kind == "sample" else None)
+            for kind in ("sample", "empty") for cam in rig.cameras
+            if any(p.camera == cam and p.sample == kind for p in plan)}
+    res["trace_s"] = time.perf_counter() - t0
+    res["rays"] = {f"{k}/{c}": int(s.kind.size) for (k, c), s in surf.items()}
+    images = {}
+    for method, chunk in (("fused", 1 << 20), ("materialise", 1 << 15)):
+        sync()
+        t0 = time.perf_counter()
+        evals = 0
+        for (kind, cam), s in surf.items():
+            need = sorted({index[p.pattern] for p in plan if p.camera == cam and p.sample == kind})
+            img = render(rig, cam, s, patterns.weights[need], device=device, chunk=chunk, method=method)
+            evals += int((s.kind != 0).sum()) * rig.num_leds
+            if method == "fused":
+                images[(kind, cam)] = dict(zip(need, img))
+        sync()
+        res[f"render_{method}_s"] = time.perf_counter() - t0
+    res["render_led_evaluations"] = evals
+    res["render_speedup_fused_vs_unfused"] = res["render_materialise_s"] / res["render_fused_s"]
+    t_sensor = t_hdr = 0.0
+    merged = 0
+    for photo in plan:
+        img = images[(photo.sample, photo.camera)][index[photo.pattern]]
+        cam = rig.camera(photo.camera)
+        exposures = np.clip(choose_bracket(max(float(img.max()), 1e-12), cam.sensor, n=BRACKET,
+                                           ratio=BRACKET_RATIO), *EXPOSURE_LIMITS_S)
+        t0 = time.perf_counter()
+        raws = [simulate_raw(img, sensor=cam.sensor, exposure_s=float(t), seed=seed, frame=_frame_id(photo, j),
+                             camera_key=photo.camera, device=device) for j, t in enumerate(exposures)]
+        t_sensor += time.perf_counter() - t0
+        if merged < hdr_photos:
+            t0 = time.perf_counter()
+            merge_hdr(raws, [float(t) for t in exposures], cam.sensor)
+            t_hdr += time.perf_counter() - t0
+            merged += 1
+    res["sensor_s"] = t_sensor
+    res["hdr_merge_s_per_photo"] = t_hdr / max(merged, 1)
+    res["hdr_merge_s_plan_extrapolated"] = res["hdr_merge_s_per_photo"] * len(plan)
+    res["total_s_fused"] = res["trace_s"] + res["render_fused_s"] + res["sensor_s"] + res["hdr_merge_s_plan_extrapolated"]
+    res["total_s_unfused_baseline"] = res["total_s_fused"] - res["render_fused_s"] + res["render_materialise_s"]
+    return res

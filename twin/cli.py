@@ -198,6 +198,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--repeats", type=int, default=5)
     s.add_argument("--no-compile", action="store_true", help="skip the torch.compile baseline")
     s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("capture", help="seconds for the full capture plan's simulation, by stage")
+    s.add_argument("--rig", default="paper")
+    s.add_argument("--device", default="cpu")
+    s.add_argument("--sample", default="ramps")
+    s.add_argument("--resolution", type=int, default=1024)
+    s.add_argument("--hdr-photos", type=int, default=4, help="photos whose HDR merge is timed")
+    s.set_defaults(func=cmd_bench)
     return p
 
 

@@ -196,10 +196,12 @@ def _bilinear(maps, row, col) -> dict:
 
 
 def render(rig, camera_name: str, surfaces: PixelSurfaces, patterns: np.ndarray, *, device="cpu",
-           chunk: int = 16384, flat_field: np.ndarray | None = None, **forward_kw) -> np.ndarray:
+           chunk: int = 16384, method: str = "auto", flat_field: np.ndarray | None = None,
+           **forward_kw) -> np.ndarray:
     """Step 4: radiance images (K, H, W, 3) float32 in W m^-2 sr^-1 under `patterns` (K, L, 3) relative
-    drive (8-bit levels / 255). On CUDA the fused kernel is used; on the CPU lumitexels are materialised
-    per chunk of rays and projected with one matrix product, which is faster there."""
+    drive (8-bit levels / 255). method: "fused" (twin.measurements' fused kernel), "materialise" (the
+    lumitexels of a chunk of rays, then the projection: on the CPU one BLAS product per channel, on CUDA
+    the projection kernel), or "auto" (fused on CUDA, materialise on the CPU, the faster there)."""
     import twin
     from twin.forward import validate_patterns
     from twin.sensor import apply_crosstalk, vignetting_factor
@@ -211,12 +213,16 @@ def render(rig, camera_name: str, surfaces: PixelSurfaces, patterns: np.ndarray,
     out = np.zeros((N, K, 3), np.float32)
     live = np.flatnonzero(surfaces.kind != KIND_NONE)
     cuda = str(device).startswith("cuda")
+    if method == "auto":
+        method = "fused" if cuda else "materialise"
+    if method not in ("fused", "materialise"):
+        raise ValueError(f"unknown render method {method!r}")
     for i in range(0, len(live), chunk):
         idx = live[i:i + chunk]
         args = surfaces.forward_args(idx)
-        if cuda:
+        if cuda or method == "fused":
             out[idx] = twin.measurements(rig, **args, patterns=w, transparency=surfaces.transparency[idx],
-                                         camera=camera_name, device=device, **forward_kw)
+                                         camera=camera_name, device=device, method=method, **forward_kw)
         else:
             m = twin.lumitexels(rig, **args, transparency=surfaces.transparency[idx], camera=camera_name,
                                 device=device, **forward_kw)
