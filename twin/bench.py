@@ -186,6 +186,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     from twin.samples import load_sample
     from twin.sensor import simulate_raw
 
+    wp.init()
     rig = twin.load_rig(rig_name)
     maps = load_sample(sample, resolution=resolution)
     patterns = build_patterns(rig)

@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, cross3, dot3, orthonormalise, unit3
 from .cross import layout_pixels
 from .rig import PROFILE_PARAMS, Board, BottomBoard, HolderFrame, LEDs, Rig, SamplePlane
 
@@ -50,6 +50,8 @@ LED_INTENSITY_W_SR = 0.05
 # released pipeline uses it; `Camera.resized(2)` gives the native grid).
 PRIMARY_K = [[4923.0, 0.0, 1322.3], [0.0, 4923.43, 1120.98], [0.0, 0.0, 1.0]]
 PRIMARY_DIST = [0.078406, -0.602699, 0.000278, -0.000606, -1.975753]
+# R is typed to 6 digits, so it is orthonormal only to ~1e-6: the rig uses its Gram-Schmidt
+# orthonormalisation (an exact rotation within 1e-6 rad of it, computed reproducibly).
 PRIMARY_R = [[-0.001543, 0.999923, -0.012319], [0.999992, 0.001589, 0.003767],
              [0.003786, -0.012313, -0.999917]]
 PRIMARY_T = [-1.0900, -4.7868, 289.0184]
@@ -73,9 +75,8 @@ def _upper_leds():
         o, f, s = map(np.asarray, (o, f, s))
         slow, fast = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")  # index = 32*slow + fast
         p = o + fast.reshape(-1, 1) * f + slow.reshape(-1, 1) * s
-        n = np.cross(f, s)
-        n /= np.linalg.norm(n)
-        if np.dot(n, centre - p.mean(0)) < 0:  # orient into the cube, towards the sample
+        n = unit3(cross3(f, s))
+        if dot3(n, centre - o) < 0:  # orient into the cube, towards the sample
             n = -n
         pos.append(p)
         nrm.append(np.repeat(n[None], len(p), 0))
@@ -113,15 +114,8 @@ def holder_frame() -> HolderFrame:
     return replace(frame, marker_ids=np.arange(len(centres)), marker_corners=corners)
 
 
-def _nearest_rotation(R) -> np.ndarray:
-    """The released R is typed to 6 digits, so it is orthonormal only to ~1e-6; use the nearest
-    rotation (SVD), as OpenCV's Rodrigues does, so that R is exactly a rotation in float64."""
-    u, _, vt = np.linalg.svd(np.asarray(R, float))
-    return u @ vt
-
-
 def _cameras() -> dict[str, Camera]:
-    primary = Camera("primary", *PRIMARY_SIZE, PRIMARY_K, PRIMARY_DIST, _nearest_rotation(PRIMARY_R), PRIMARY_T,
+    primary = Camera("primary", *PRIMARY_SIZE, PRIMARY_K, PRIMARY_DIST, orthonormalise(PRIMARY_R), PRIMARY_T,
                      note="released calibration (intrinsic.yml, extrinsic.yml), half resolution")
     o = _rigid_origin()
     d = SECONDARY_DISTANCE / np.sqrt(2)

@@ -5,6 +5,7 @@ Frames and pixel conventions are those of `twin.units`. The projection is checke
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -52,6 +53,33 @@ class SensorParams:
         m = np.asarray(self.crosstalk, dtype=float)
         if m.shape != (3, 3) or not np.all(np.isfinite(m)):
             raise ValueError("sensor crosstalk must be a finite 3x3 matrix (LED RGB -> camera RGB)")
+
+
+def unit3(v) -> np.ndarray:
+    """A 3-vector divided by its length, in plain IEEE double arithmetic (Python floats: no BLAS, SIMD
+    or FMA), so that rigs built from it are bit-identical on every machine (their digest seeds the
+    sensor's fixed patterns and names captures)."""
+    x, y, z = (float(c) for c in v)
+    n = math.sqrt(x * x + y * y + z * z)
+    return np.array([x / n, y / n, z / n])
+
+
+def cross3(a, b) -> np.ndarray:
+    a0, a1, a2 = (float(c) for c in a)
+    b0, b1, b2 = (float(c) for c in b)
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
+def dot3(a, b) -> float:
+    return float(a[0]) * float(b[0]) + float(a[1]) * float(b[1]) + float(a[2]) * float(b[2])
+
+
+def orthonormalise(R) -> np.ndarray:
+    """Gram-Schmidt on the rows of a nearly orthonormal 3x3 matrix (first row kept, third = first x
+    second): an exact rotation, computed reproducibly (see unit3)."""
+    r0 = unit3(R[0])
+    r1 = unit3(np.asarray(R[1], float) - dot3(r0, R[1]) * r0)
+    return np.stack([r0, r1, cross3(r0, r1)])
 
 
 def _frozen(a, dtype=np.float64):
@@ -157,10 +185,7 @@ class Camera:
         """Build R|t for a camera at `centre` looking at `target`; camera +x is `up_hint` made orthogonal
         to the view direction (the image columns run along it)."""
         centre = np.asarray(centre, float)
-        z = np.asarray(target, float) - centre
-        z /= np.linalg.norm(z)
-        x = np.asarray(up_hint, float) - np.dot(up_hint, z) * z
-        x /= np.linalg.norm(x)
-        y = np.cross(z, x)
-        R = np.stack([x, y, z])
-        return Camera(name, width, height, K, dist, R, -R @ centre, **kw)
+        z = unit3(np.asarray(target, float) - centre)
+        x = unit3(np.asarray(up_hint, float) - dot3(up_hint, z) * z)
+        R = np.stack([x, cross3(z, x), z])
+        return Camera(name, width, height, K, dist, R, -np.array([dot3(r, centre) for r in R]), **kw)

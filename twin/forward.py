@@ -272,7 +272,8 @@ def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y,
                  fresnel="schlick", eta=1.5, visibility=None, method="fused", dtype="float32"):
     """Pattern measurements B[p, k, c] = sum_l W[k, l, c] m[p, l, c] (paper Eq. 2). `patterns`: (K, L, 3)
     or (K, L) relative drive, or a twin.patterns.PatternSet. method="fused" never stores the lumitexels
-    (a tiled kernel on CUDA, a loop kernel on CPU); "materialise" computes them, then projects."""
+    (a tiled kernel on CUDA, a loop kernel on CPU); "materialise" computes them, then projects (cuBLAS
+    on CUDA, the projection kernel on the CPU)."""
     if any(_is_torch(x) for x in (position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, patterns)):
         from .torch_ops import measurements_torch
 
@@ -292,7 +293,13 @@ def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y,
         m = wp.zeros((P, rig.num_leds), dtype=vec, device=device)
         wp.launch(K.lumitexel_kernel, dim=m.shape, inputs=[*wpts, *leds, o], outputs=[m], device=device)
         W = wp.array(w.astype(npd), dtype=vec, device=device)
-        wp.launch(K.project_kernel, dim=out.shape, inputs=[m, W], outputs=[out], device=device)
+        if wp.get_device(device).is_cuda:  # the projection is a GEMM per channel: cuBLAS through torch
+            import torch
+
+            res = torch.einsum("plc,klc->pkc", wp.to_torch(m), wp.to_torch(W))
+            wp.copy(out, wp.from_torch(res.contiguous(), dtype=vec))
+        else:
+            wp.launch(K.project_kernel, dim=out.shape, inputs=[m, W], outputs=[out], device=device)
     elif method == "fused":
         from .fused import fused_measurements
 
