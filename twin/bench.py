@@ -186,7 +186,9 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     from twin.samples import load_sample
     from twin.sensor import simulate_raw
 
-    wp.init()
+    from twin.forward import _init
+
+    _init()  # quiet: the JSON must be the only output
     rig = twin.load_rig(rig_name)
     maps = load_sample(sample, resolution=resolution)
     patterns = build_patterns(rig)
