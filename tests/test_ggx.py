@@ -569,7 +569,6 @@ def test_float64_closed_forms_match_mitsuba(mi):
 def test_float64_agrees_with_float32(device):
     rng = np.random.default_rng(14)
     wi, wo = _pairs(rng, 2000, 0.05, np.float32)  # bit-identical inputs for both precisions
-    n = len(wi)
     for ax, ay in ALPHAS:
         for g in ("separable", "height-correlated"):
             for fres, eta in (("schlick", 1.5), ("dielectric", 1.5), ("dielectric", 1 / 1.33)):

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 import twin
 from twin import RigError
-from twin.rig_format import load_rig_dir, save_rig
+from twin.rig_format import load_rig_dir
 
 from conftest import assert_rigs_identical, pickle_bomb_array
 

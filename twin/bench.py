@@ -179,7 +179,6 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     import warp as wp
 
     import twin
-    from twin.backends import SimBackend
     from twin.capture import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S, _frame_id, build_patterns, paper_plan
     from twin.hdr import choose_bracket, merge_hdr
     from twin.imaging import render, trace_pixels

@@ -30,7 +30,7 @@ import warp as wp
 
 from . import lumitexel as K
 from .emitter import PROFILE_COSINE, PROFILE_MODES, led_u_axes
-from .ggx import F_DIELECTRIC, F_SCHLICK, G_HEIGHT_CORRELATED, G_SEPARABLE
+from .ggx import brdf_modes
 
 OPENSVBRDF_RENDER_SCALE = 100.0 * math.pi  # S_render, reference §2.1
 OPENSVBRDF_PHOTO_SCALE = OPENSVBRDF_RENDER_SCALE * 3000.0 / math.pi  # 3e5, reference §2.1
@@ -55,8 +55,6 @@ CONVENTIONS = {
     "physical": Convention("physical", 1.0, 1e-3, 0.0, 0.0, 0.0, True, True, True, True),
     "opensvbrdf": Convention("opensvbrdf", OPENSVBRDF_RENDER_SCALE, 1.0, 1e-6, 1e-6, 1e-6, False, False, False, False),
 }
-G_MODES = {"separable": G_SEPARABLE, "height-correlated": G_HEIGHT_CORRELATED}
-F_MODES = {"schlick": F_SCHLICK, "dielectric": F_DIELECTRIC}
 
 
 def _init():
@@ -122,14 +120,8 @@ def make_options(rig, arrays: RigArrays, convention: str, g: str, fresnel: str, 
         c = CONVENTIONS[convention]
     except KeyError:
         raise ValueError(f"unknown convention {convention!r}; expected one of {sorted(CONVENTIONS)}") from None
-    if g not in G_MODES:
-        raise ValueError(f"unknown G term {g!r}; expected one of {sorted(G_MODES)}")
-    if fresnel not in F_MODES:
-        raise ValueError(f"unknown Fresnel term {fresnel!r}; expected one of {sorted(F_MODES)}")
-    if not (np.isfinite(eta) and eta > 0):
-        raise ValueError(f"eta must be a positive number, got {eta}")
     o = K.Options()
-    o.g_mode, o.f_mode, o.eta = G_MODES[g], F_MODES[fresnel], float(eta)
+    o.g_mode, o.f_mode, o.eta, _ = brdf_modes(g, fresnel, eta)
     o.profile_mode = PROFILE_MODES[rig.led_profile] if c.rig_profile else PROFILE_COSINE
     o.eps, o.length_scale, o.r2_eps, o.min_cos_i, o.scale = c.eps, c.length_scale, c.r2_eps, c.min_cos_i, c.scale
     o.use_bottom = int(c.bottom and rig.bottom is not None)

@@ -312,7 +312,8 @@ def _unit(name: str, a: np.ndarray) -> None:
         raise ValueError(f"{name} must be unit vectors (|v| = 1 ± 1e-3); row {int(np.argmax(bad))} is not")
 
 
-def _modes(g: str, fresnel: str, eta: float, eps: float) -> tuple[int, int, float, float]:
+def brdf_modes(g: str, fresnel: str, eta: float, eps: float = 0.0) -> tuple[int, int, float, float]:
+    """Validate the BRDF options and return (g_mode, f_mode, eta, eps) for the kernels."""
     if g not in _G_MODES:
         raise ValueError(f"unknown g={g!r}; expected one of {sorted(_G_MODES)}")
     if fresnel not in _F_MODES:
@@ -356,7 +357,7 @@ def brdf(wi, wo, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *, g: str = "s
         _unit(k, v)
     if np.any(np.linalg.norm(np.cross(normal, tangent), axis=1) < 1e-6):
         raise ValueError("tangent must not be parallel to normal")
-    g_mode, f_mode, eta, eps = _modes(g, fresnel, eta, eps)
+    g_mode, f_mode, eta, eps = brdf_modes(g, fresnel, eta, eps)
     if n == 0:
         return np.zeros((0, 3), dtype=npt)
     wp.init()
@@ -382,7 +383,7 @@ def specular_terms(wi_loc, wo_loc, ax, ay, *, g: str = "separable", fresnel: str
     n = wi_loc.shape[0]
     wo_loc = _vectors("wo_loc", wo_loc, n)
     ax, ay = _scalars("ax", ax, n), _scalars("ay", ay, n)
-    g_mode, f_mode, eta, eps = _modes(g, fresnel, eta, eps)
+    g_mode, f_mode, eta, eps = brdf_modes(g, fresnel, eta, eps)
     wp.init()
     outs = {"h": wp.zeros(n, dtype=vec, device=device)}
     for k in ("c", "D", "G1_i", "G1_o", "G", "Lambda_i", "Lambda_o", "F", "fs"):

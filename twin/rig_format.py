@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import io
 import os
-import shutil
-import tempfile
 import tomllib
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -23,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from .atomic import atomic_folder
 from .camera import Camera, SensorParams
 from .rig import RIG_FORMAT_VERSION, Board, BottomBoard, HolderFrame, LEDs, Rig, RigError, SamplePlane
 from .units import MM_PER, to_mm
@@ -93,30 +92,10 @@ def canonical_bytes(rig: Rig) -> bytes:
 
 def save_rig(rig: Rig, directory: str | os.PathLike, overwrite: bool = False) -> Path:
     """Write `rig` to a folder atomically: either the complete new folder is there, or the old state."""
-    dest = Path(directory)
-    if dest.exists() and not overwrite:
-        raise FileExistsError(f"{dest} exists; pass overwrite=True (--force) to replace it")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    os.chmod(tmp, 0o755)  # mkdtemp makes it private; a rig folder is an ordinary folder
-    try:
+    with atomic_folder(directory, overwrite) as tmp:
         for name, data in _files(rig).items():
             (tmp / name).write_bytes(data)
-        if dest.exists():
-            old = dest.with_name(f".{dest.name}.old-{os.getpid()}")
-            os.rename(dest, old)
-            try:
-                os.rename(tmp, dest)
-            except BaseException:
-                os.rename(old, dest)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, dest)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return dest
+    return Path(directory)
 
 
 # --- reading -----------------------------------------------------------------------------------------

@@ -38,8 +38,6 @@ from __future__ import annotations
 import math
 import operator
 import os
-import shutil
-import tempfile
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +45,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from .atomic import atomic_folder
 from .exr import ExrError, check_finite, read_rgb_exr, write_rgb_exr
 
 SAMPLE_FORMAT = "hemicube-sample"
@@ -286,13 +285,7 @@ def write_maps(maps: SVBRDFMaps, directory: str | os.PathLike, overwrite: bool =
     beside `directory` and renamed into place, so a reader sees the old folder or the complete new one."""
     if not isinstance(maps, SVBRDFMaps):
         raise TypeError(f"expected SVBRDFMaps, got {type(maps).__name__}")
-    dest = Path(directory)
-    if dest.exists() and not overwrite:
-        raise FileExistsError(f"{dest} exists; pass overwrite=True to replace it")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    os.chmod(tmp, 0o755)  # mkdtemp makes it private; a map folder is an ordinary folder
-    try:
+    with atomic_folder(directory, overwrite) as tmp:
         attrs = {"hemicube_sample": maps.name, "size_mm": maps.size_mm}
         zero = np.zeros(maps.shape + (1,), np.float32)
         images = {
@@ -308,21 +301,7 @@ def write_maps(maps: SVBRDFMaps, directory: str | os.PathLike, overwrite: bool =
         doc = {"format": SAMPLE_FORMAT, "version": SAMPLE_FORMAT_VERSION, "name": maps.name,
                "size_mm": maps.size_mm, "resolution": list(maps.shape)}
         (tmp / SAMPLE_TOML).write_text(tomli_w.dumps(doc))
-        if dest.exists():
-            old = dest.with_name(f".{dest.name}.old-{os.getpid()}")
-            os.rename(dest, old)
-            try:
-                os.rename(tmp, dest)
-            except BaseException:
-                os.rename(old, dest)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, dest)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return dest
+    return Path(directory)
 
 
 def _read_image(path: Path, shape) -> np.ndarray:
