@@ -290,3 +290,13 @@ def test_option_errors(mini):
         twin.measurements(mini, **pts, patterns=np.ones((4, 7, 3)))
     with pytest.raises(KeyError, match="no camera"):
         twin.lumitexels(mini, **pts, camera="top")
+
+
+def test_torch_output_shares_the_kernel_result(mini):
+    torch = pytest.importorskip("torch")
+    pts = _points(8)
+    m = twin.lumitexels(mini, **pts, output="torch")
+    assert isinstance(m, torch.Tensor) and m.shape == (8, mini.num_leds, 3) and not m.requires_grad
+    np.testing.assert_array_equal(m.numpy(), twin.lumitexels(mini, **pts))
+    with pytest.raises(ValueError, match="output must be"):
+        twin.lumitexels(mini, **pts, output="jax")

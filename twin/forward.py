@@ -239,10 +239,12 @@ def _led_inputs(arrays: RigArrays, conv: Convention):
 
 def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *, convention="physical",
                device="cpu", camera=None, transparency=None, g="separable", fresnel="schlick", eta=1.5,
-               visibility=None, dtype="float32"):
+               visibility=None, dtype="float32", output="numpy"):
     """Lumitexels m[p, l, c] (paper Eq. 1) of P points under each of the rig's L LEDs, seen from
     `camera` (default: the rig's first camera). Returns numpy (P, L, 3), or torch if the inputs are
-    torch tensors (then differentiable w.r.t. normal, tangent, rho_d, rho_s, alpha_x, alpha_y)."""
+    torch tensors (then differentiable w.r.t. normal, tangent, rho_d, rho_s, alpha_x, alpha_y).
+    output="torch" with array inputs returns a torch tensor on `device` that shares the kernel's output
+    memory (zero-copy, no autograd): training data made on the device where the network trains."""
     if any(_is_torch(x) for x in (position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y)):
         from .torch_ops import lumitexels_torch
 
@@ -256,6 +258,10 @@ def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *
     out = wp.zeros((len(pts[0]), rig.num_leds), dtype=vec, device=device)
     wp.launch(K.lumitexel_kernel, dim=out.shape, inputs=[*wpts, *_led_inputs(arrays, CONVENTIONS[convention]), o],
               outputs=[out], device=device)
+    if output == "torch":
+        return wp.to_torch(out)
+    if output != "numpy":
+        raise ValueError(f"output must be 'numpy' or 'torch', got {output!r}")
     return out.numpy()
 
 
