@@ -163,25 +163,22 @@ def _validate(m: SVBRDFMaps) -> None:
         want = (h, w) if c is None else (h, w, c)
         if a.shape != want:
             raise SampleError(f"{k}: expected shape {want} (like rho_d), got {a.shape}", k)
-    for k in m.ARRAYS:
-        a = getattr(m, k)
-        bad = ~np.isfinite(a)
-        if bad.ndim == 3:
-            bad = bad.any(axis=2)
+    def reject(k, bad, message):
+        """Raise for the first texel where `bad` (per texel or per channel) holds."""
+        bad = bad.any(axis=2) if bad.ndim == 3 else bad
         if bad.any():
             i, j = _texel(bad)
-            raise SampleError(f"{k}: non-finite value {_fmt(a[i, j])} at texel (row {i}, col {j}) "
-                              f"({int(bad.sum())} bad texels)", k)
+            raise SampleError(message(getattr(m, k)[i, j], i, j, int(bad.sum())), k)
+
+    for k in m.ARRAYS:
+        reject(k, ~np.isfinite(getattr(m, k)), lambda v, i, j, n, k=k:
+               f"{k}: non-finite value {_fmt(v)} at texel (row {i}, col {j}) ({n} bad texels)")
     for k, (lo, hi) in (("rho_d", RHO_D_RANGE), ("rho_s", RHO_S_RANGE), ("alpha", ALPHA_RANGE),
                         ("transparency", (0.0, 1.0))):
         a = getattr(m, k)
-        bad = (a < lo) | (a > hi)
-        if bad.ndim == 3:
-            bad = bad.any(axis=2)
-        if bad.any():
-            i, j = _texel(bad)
-            raise SampleError(f"{k}: value {_fmt(a[i, j])} at texel (row {i}, col {j}) is outside "
-                              f"[{lo:g}, {hi:g}] ({int(bad.sum())} texels out of range)", k)
+        reject(k, (a < lo) | (a > hi), lambda v, i, j, n, k=k, lo=lo, hi=hi:
+               f"{k}: value {_fmt(v)} at texel (row {i}, col {j}) is outside [{lo:g}, {hi:g}] "
+               f"({n} texels out of range)")
     for k in ("normal", "tangent"):
         a = getattr(m, k)
         norm = np.linalg.norm(a.astype(np.float64), axis=2)
