@@ -262,3 +262,16 @@ def test_successful_overwrite(tmp_path, existing):
     back = load_patterns(path)
     assert back.names == ("a", "b") and np.all(back.levels == 200)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["set.npz"]
+
+
+def test_atomic_files_get_ordinary_permissions(tmp_path):
+    """Atomic writes go through mkstemp (mode 0600); the final file must have the umask's ordinary mode."""
+    import os
+    import stat
+
+    from twin.atomic import write_bytes_atomic
+
+    p = write_bytes_atomic(tmp_path / "x.bin", b"abc")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask

@@ -133,6 +133,24 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    from dataclasses import replace
+
+    from reconstruction.train import TrainConfig, train
+
+    cfg = TrainConfig(rig=args.rig)
+    over = {k: v for k, v in (("steps", args.steps), ("batch", args.batch), ("lr", args.lr), ("seed", args.seed),
+                              ("device", args.device), ("eval_every", args.eval_every),
+                              ("checkpoint_every", args.checkpoint_every),
+                              ("pair_fraction", args.pair_fraction)) if v is not None}
+    cfg = replace(cfg, **over)
+    m = train(cfg, args.output, progress=not args.no_progress)
+    ips = m["iterations_per_s"]
+    print(f"trained {m['steps']} steps in {args.output}: final held-out loss (Eq. 3) {m['final_heldout_loss']:.6g}"
+          + (f", {ips:.2f} it/s, {m['lumitexels_per_s']:.0f} lumitexels/s" if ips else ""))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hemicube", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -187,6 +205,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", default="cpu")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_validate)
+
+    s = sub.add_parser("train", help="train the acquisition network (resumable); writes learned patterns")
+    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder")
+    s.add_argument("--steps", type=int)
+    s.add_argument("--batch", type=int)
+    s.add_argument("--lr", type=float)
+    s.add_argument("--seed", type=int)
+    s.add_argument("--device", help="cpu (default) or cuda")
+    s.add_argument("--eval-every", type=int)
+    s.add_argument("--checkpoint-every", type=int)
+    s.add_argument("--pair-fraction", type=float, help="fraction of albedo-swap steps (default 0.5)")
+    s.add_argument("-o", "--output", required=True, help="run folder (re-run to resume)")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_train)
+
+    pats = sub.add_parser("patterns", help="pattern files").add_subparsers(dest="patterns_command", required=True)
+    s = pats.add_parser("show", help="a pattern set as unfolded-cube (cross) images")
+    s.add_argument("file")
+    s.add_argument("-o", "--output", required=True)
+    s.add_argument("--rig", help="rig (default: the one the pattern file names)")
+    s.add_argument("--index", type=int, help="only this frame")
+    s.set_defaults(func=cmd_show_pattern)
 
     bench = sub.add_parser("bench", help="benchmarks; print JSON").add_subparsers(dest="bench_command", required=True)
     s = bench.add_parser("lumitexel", help="LED-BRDF evaluations per second vs a plain torch baseline")

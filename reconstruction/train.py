@@ -1,0 +1,401 @@
+"""Training loop of the acquisition network (paper §6): synthetic lumitexels in, learned patterns out.
+
+    cfg = TrainConfig(rig="mini", steps=2000)
+    metrics = train(cfg, "runs/mini")        # resumable; re-run to continue from the last checkpoint
+
+A run folder holds
+    metrics.jsonl            one JSON object per evaluation (step, train_loss, train_swap_loss,
+                             heldout_loss, wall_s, lumitexels_per_s), appended and flushed line by line
+    checkpoint.safetensors   model state ("model.<name>") + Adam state ("optim.<param index>.<key>")
+    checkpoint.json          step, config, rig digest, RNG states (lists), wall time, sha256 of the tensor
+                             file; written LAST, so a checkpoint is valid only when its JSON names it
+                             (the tensor file's sha256 must match)
+    patterns.npz             the learned patterns as a twin.patterns file: 64 frames (32 signed pairs,
+                             "learned_00+", "learned_00-", ...) x ALL rig LEDs (bottom LEDs 0) x 3 equal
+                             channels; usable as `hemicube capture --patterns`
+    loss.png                 train and held-out loss vs step
+    metrics.json             summary (final held-out loss, steps, wall time, iterations/s, lumitexels/s,
+                             command line)
+
+Steps. Step i (0-based) trains on batch i of the data stream, so a resumed run sees exactly the data of an
+uninterrupted one; the global torch RNG (dropout, measurement noise) is saved in the checkpoint and
+restored, so a resumed run reproduces an uninterrupted one bit for bit (CPU, one thread). A fraction
+`pair_fraction` of the steps, evenly spaced (step i is a pair step when floor((i+1) f) > floor(i f)), are
+albedo-swap steps: `albedo_swap_loss` on `pair_batch(i)`; the others use `lumitexel_loss` (Eq. 3) on
+`batch(i)` with target views[:, 0].
+
+Losses reported. heldout_loss: Eq. 3 (sum over LEDs, mean over texels) on a fixed held-out set, in eval
+mode. train_loss: the mean Eq. 3 per lumitexel over the steps since the last evaluation (a pair step's
+swap loss, a sum over 4 lumitexels, counts divided by 4, so the number is comparable with heldout_loss);
+train_swap_loss: the raw mean albedo_swap_loss of the pair steps. lumitexels_per_s: network input samples
+(B per plain step, 2B per pair step) per second of wall time, data synthesis included.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from twin.atomic import atomic_path, write_bytes_atomic
+
+from .data import LumitexelStream, SamplingConfig, heldout_set
+from .network import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
+
+__all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_patterns", "load_checkpoint",
+           "CHECKPOINT_TENSORS", "CHECKPOINT_JSON"]
+
+CHECKPOINT_TENSORS = "checkpoint.safetensors"
+CHECKPOINT_JSON = "checkpoint.json"
+# config fields that may change between a run and its resumption: they do not change the trained model
+# (steps: how far to go; eval/checkpoint cadence: what is written along the way; device: where it runs)
+RESUMABLE_FIELDS = ("steps", "eval_every", "checkpoint_every", "device")
+
+
+class TrainError(ValueError):
+    """A run folder that cannot be (re)used: a different config, a corrupt checkpoint."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    # rig: a built-in name ("mini", "paper") or a rig folder (twin.load_rig)
+    rig: str = "mini"
+    # steps: this project's CPU default for the mini rig (the paper does not state its iteration count)
+    steps: int = 2000
+    # batch: paper §6 uses 50; 256 is this project's default for the CPU mini rig (a 260 k-parameter net
+    # is cheap per sample, larger batches use the core better and give smoother gradients)
+    batch: int = 256
+    # lr: paper §6 uses Adam with 1e-4; 1e-3 is this project's default for the small mini-rig network,
+    # which converges too slowly at 1e-4 in a CPU budget of a few thousand steps. Adam beta1 = 0.9 (paper).
+    lr: float = 1e-3
+    beta1: float = 0.9
+    beta2: float = 0.999  # PyTorch's default (the paper gives only beta1)
+    seed: int = 0
+    device: str = "cpu"
+    eval_every: int = 50          # this project's choice
+    checkpoint_every: int = 500   # this project's choice
+    # fraction of the steps that are albedo-swap pair steps (paper §6 trains both; the split is ours)
+    pair_fraction: float = 0.5
+    heldout_size: int = 512       # this project's choice: a fixed, seeded held-out set
+    # network (reconstruction.network.NetworkConfig; paper §6 values)
+    patterns_per_view: int = 32   # released: 32 signed patterns = 64 frames
+    dropout: float = 0.3          # paper §6: 30%
+    measurement_noise: float = 0.05  # paper §6: 5% multiplicative noise
+    # training data distributions (reconstruction.data.SamplingConfig defaults, sources given there)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+
+    def __post_init__(self):
+        for name in ("steps", "batch", "eval_every", "checkpoint_every", "heldout_size", "patterns_per_view"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < (0 if name == "steps" else 1):
+                raise ValueError(f"TrainConfig.{name} must be a {'non-negative' if name == 'steps' else 'positive'}"
+                                 f" integer, got {v!r}")
+        if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr!r}")
+        if not 0.0 <= float(self.pair_fraction) <= 1.0:
+            raise ValueError(f"TrainConfig.pair_fraction must lie in [0, 1], got {self.pair_fraction!r}")
+        if isinstance(self.sampling, dict):
+            object.__setattr__(self, "sampling", SamplingConfig(**self.sampling))
+
+    def network_config(self, num_leds: int) -> NetworkConfig:
+        return NetworkConfig(num_leds=int(num_leds), patterns_per_view=self.patterns_per_view,
+                             dropout=self.dropout, measurement_noise=self.measurement_noise)
+
+    def to_json(self) -> dict:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_json(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        s = dict(d.pop("sampling", {}))
+        for k, v in s.items():
+            if isinstance(v, list):
+                s[k] = tuple(v)
+        return cls(**d, sampling=SamplingConfig(**s))
+
+
+def is_pair_step(i: int, fraction: float) -> bool:
+    """Step i is an albedo-swap step when floor((i + 1) f) > floor(i f): evenly spaced, no RNG."""
+    return math.floor((i + 1) * fraction) > math.floor(i * fraction)
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _rng_state(device: torch.device) -> dict:
+    out = {"torch": torch.get_rng_state().tolist()}
+    if device.type == "cuda":
+        out["cuda"] = torch.cuda.get_rng_state(device).tolist()
+    return out
+
+
+def _set_rng_state(state: dict, device: torch.device) -> None:
+    torch.set_rng_state(torch.tensor(state["torch"], dtype=torch.uint8))
+    if device.type == "cuda" and "cuda" in state:
+        torch.cuda.set_rng_state(torch.tensor(state["cuda"], dtype=torch.uint8), device)
+
+
+def _save_checkpoint(run_dir: Path, model, opt, step: int, config: TrainConfig, rig_digest: str,
+                     device: torch.device, wall_s: float) -> None:
+    from safetensors.torch import save_file
+
+    tensors = {f"model.{k}": v.detach().cpu().contiguous().clone() for k, v in model.state_dict().items()}
+    for pid, st in opt.state_dict()["state"].items():
+        for key, v in st.items():
+            t = v if torch.is_tensor(v) else torch.tensor(v)
+            tensors[f"optim.{pid}.{key}"] = t.detach().cpu().contiguous().clone()
+    path = run_dir / CHECKPOINT_TENSORS
+    with atomic_path(path) as tmp:
+        save_file(tensors, str(tmp), metadata={"step": str(step)})
+    meta = {"format": "hemicube-train-checkpoint", "version": 1, "step": int(step), "tensors": CHECKPOINT_TENSORS,
+            "sha256": _sha256(path), "config": config.to_json(), "rig_digest": rig_digest,
+            "rng": _rng_state(device), "wall_s": float(wall_s)}
+    write_bytes_atomic(run_dir / CHECKPOINT_JSON, json.dumps(meta).encode())
+
+
+def load_checkpoint(run_dir) -> tuple[dict, dict] | None:
+    """(checkpoint.json's dict, tensors on the CPU) of a run folder, or None when it has no checkpoint."""
+    from safetensors.torch import load_file
+
+    run_dir = Path(run_dir)
+    jpath = run_dir / CHECKPOINT_JSON
+    if not jpath.is_file():
+        return None
+    try:
+        meta = json.loads(jpath.read_text())
+    except (OSError, ValueError) as e:
+        raise TrainError(f"{jpath}: not a readable checkpoint ({e})") from None
+    tpath = run_dir / meta.get("tensors", CHECKPOINT_TENSORS)
+    if not tpath.is_file() or _sha256(tpath) != meta.get("sha256"):
+        raise TrainError(f"{jpath} does not name {tpath.name} (missing or different sha256: the run was "
+                         "interrupted while saving a checkpoint); start a new run folder")
+    return meta, load_file(str(tpath))
+
+
+def _check_resumable(meta: dict, config: TrainConfig, rig_digest: str, run_dir: Path) -> None:
+    old = {k: v for k, v in meta["config"].items() if k not in RESUMABLE_FIELDS}
+    new = {k: v for k, v in config.to_json().items() if k not in RESUMABLE_FIELDS}
+    if old != new:
+        diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+        detail = ", ".join(f"{k}: {old.get(k)!r} (checkpoint) != {new.get(k)!r} (now)" for k in diff)
+        raise TrainError(f"{run_dir} holds a checkpoint of a run with a different config ({detail}); resume "
+                         "with the same settings (only steps, eval_every, checkpoint_every and device may "
+                         "change) or use another run folder")
+    if meta.get("rig_digest") != rig_digest:
+        raise TrainError(f"{run_dir} holds a checkpoint trained on a different rig (digest "
+                         f"{meta.get('rig_digest')} != {rig_digest}); use another run folder")
+
+
+def _restore(model, opt, tensors: dict) -> None:
+    model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    state: dict = {}
+    for k, v in tensors.items():
+        if k.startswith("optim."):
+            _, pid, key = k.split(".", 2)
+            state.setdefault(int(pid), {})[key] = v
+    opt.load_state_dict({"state": state, "param_groups": opt.state_dict()["param_groups"]})
+
+
+# ------------------------------------------------------------------------------------------ outputs
+
+
+def export_patterns(model: AcquisitionNet, rig, note: str = ""):
+    """The learned patterns of view 0 as a twin.patterns.PatternSet over ALL rig LEDs (bottom LEDs 0,
+    3 equal channels), frames in the capture plan's order."""
+    from twin.patterns import PatternSet
+
+    lv = model.patterns.export_levels(0)  # (2K, L_upper) uint8
+    upper = np.flatnonzero(~np.asarray(rig.is_bottom))
+    if lv.shape[1] != upper.size:
+        raise ValueError(f"the model has {lv.shape[1]} LEDs per pattern, rig {rig.name!r} has {upper.size} upper LEDs")
+    full = np.zeros((lv.shape[0], rig.num_leds, 3), dtype=np.uint8)
+    full[:, upper, :] = lv[:, :, None]
+    return PatternSet(full, tuple(model.patterns.export_names()), rig.name, note)
+
+
+def _read_metrics(path: Path, max_step: int | None = None) -> list[dict]:
+    rows = []
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                r = json.loads(line)
+            except ValueError:
+                continue  # a line cut short by a kill
+            if max_step is None or r["step"] <= max_step:
+                rows.append(r)
+    return rows
+
+
+def _plot_loss(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    tr = [(r["step"], r["train_loss"]) for r in rows if r.get("train_loss") is not None]
+    he = [(r["step"], r["heldout_loss"]) for r in rows]
+    if tr:
+        ax.plot(*zip(*tr), label="train (Eq. 3 per lumitexel)")
+    if he:
+        ax.plot(*zip(*he), marker="o", ms=3, label="held-out (Eq. 3)")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_yscale("log")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------ training
+
+
+def _evaluate(model, held) -> float:
+    model.eval()
+    with torch.no_grad():
+        out = model(held["views"])
+        loss = float(lumitexel_loss(out["log_lumitexel"], held["target"]))
+    model.train()
+    return loss
+
+
+def train(config: TrainConfig, run_dir, progress: bool = True) -> dict:
+    """Train (or resume) the acquisition network in `run_dir`; return the summary written to metrics.json."""
+    import twin
+    from tqdm import tqdm
+    from twin.patterns import save_patterns
+
+    if not isinstance(config, TrainConfig):
+        raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
+    run_dir = Path(run_dir)
+    device = torch.device(config.device)
+    rig = twin.load_rig(config.rig)
+    digest = rig.digest()
+    ckpt = load_checkpoint(run_dir)
+    if ckpt is not None:
+        _check_resumable(ckpt[0], config, digest, run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+    threads = torch.get_num_threads()
+    if device.type == "cpu":
+        torch.set_num_threads(1)  # tiny models: one thread is far faster when cores are shared
+    try:
+        num_upper = int((~np.asarray(rig.is_bottom)).sum())
+        net_cfg = config.network_config(num_upper)
+        stream = LumitexelStream(rig, config.sampling, config.batch, config.seed, device)
+        held = heldout_set(rig, config.sampling, config.heldout_size, config.seed, device)
+        torch.manual_seed(config.seed)
+        model = AcquisitionNet(net_cfg).to(device)
+        model.train()
+        opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(config.beta1, config.beta2))
+
+        mpath = run_dir / "metrics.jsonl"
+        start, wall_before = 0, 0.0
+        if ckpt is not None:
+            meta, tensors = ckpt
+            _restore(model, opt, {k: v.to(device) for k, v in tensors.items()})
+            _set_rng_state(meta["rng"], device)
+            start, wall_before = int(meta["step"]), float(meta.get("wall_s", 0.0))
+            # drop evaluations written after the checkpoint (a killed run): they are redone
+            kept = _read_metrics(mpath, max_step=start)
+            write_bytes_atomic(mpath, "".join(json.dumps(r) + "\n" for r in kept).encode())
+        elif mpath.exists():
+            mpath.unlink()
+
+        t0 = time.perf_counter()
+        last_eval_t, last_samples = t0, 0
+        samples, window_plain, window_swap = 0, [], []
+        heldout = None
+        with open(mpath, "a") as mf:
+            def log(step: int):
+                nonlocal last_eval_t, last_samples, window_plain, window_swap, heldout
+                now = time.perf_counter()
+                heldout = _evaluate(model, held)
+                row = {"step": step,
+                       "train_loss": float(np.mean(window_plain)) if window_plain else None,
+                       "train_swap_loss": float(np.mean(window_swap)) if window_swap else None,
+                       "heldout_loss": heldout, "wall_s": wall_before + (now - t0),
+                       "lumitexels_per_s": ((samples - last_samples) / (now - last_eval_t)
+                                            if samples > last_samples else None)}
+                mf.write(json.dumps(row) + "\n")
+                mf.flush()
+                os.fsync(mf.fileno())
+                last_eval_t, last_samples = time.perf_counter(), samples
+                window_plain, window_swap = [], []
+                return row
+
+            if start == 0:
+                log(0)
+            bar = tqdm(range(start, config.steps), initial=start, total=config.steps, disable=not progress,
+                       desc="train", unit="step", file=sys.stderr)
+            for i in bar:
+                if is_pair_step(i, config.pair_fraction):
+                    b = stream.pair_batch(i)
+                    loss = albedo_swap_loss(model.albedo_swap_forward(b["views_a"], b["views_b"]), b["targets"])
+                    n = 2 * config.batch
+                else:
+                    b = stream.batch(i)
+                    loss = lumitexel_loss(model(b["views"])["log_lumitexel"], b["views"][:, 0])
+                    n = config.batch
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                lv = float(loss.detach())
+                if n == config.batch:
+                    window_plain.append(lv)
+                else:
+                    window_swap.append(lv)
+                    window_plain.append(lv / 4.0)
+                samples += n
+                step = i + 1
+                if step % config.eval_every == 0 or step == config.steps:
+                    row = log(step)
+                    bar.set_postfix(heldout=f"{row['heldout_loss']:.3g}")
+                if step % config.checkpoint_every == 0 and step != config.steps:
+                    _save_checkpoint(run_dir, model, opt, step, config, digest, device,
+                                     wall_before + time.perf_counter() - t0)
+            bar.close()
+            end = max(start, config.steps)
+            if heldout is None:  # nothing to run (resumed at or past the end): evaluate what is there
+                heldout = _evaluate(model, held)
+        loop_s = time.perf_counter() - t0
+        ran = end - start
+        _save_checkpoint(run_dir, model, opt, end, config, digest, device, wall_before + loop_s)
+
+        note = (f"learned by reconstruction.train: rig {rig.name}, step {end}, seed {config.seed}, "
+                f"held-out loss (Eq. 3) {heldout:.6g}")
+        save_patterns(export_patterns(model, rig, note), run_dir / "patterns.npz")
+        rows = _read_metrics(mpath)
+        _plot_loss(rows, run_dir / "loss.png")
+        summary = {"final_heldout_loss": heldout, "steps": end, "steps_this_invocation": ran,
+                   "resumed_from": start if ckpt is not None else None,
+                   "wall_s": wall_before + loop_s, "wall_s_this_invocation": loop_s,
+                   "iterations_per_s": ran / loop_s if ran and loop_s > 0 else None,
+                   "lumitexels_per_s": samples / loop_s if samples and loop_s > 0 else None,
+                   "num_parameters": int(sum(p.numel() for p in model.parameters())),
+                   "num_upper_leds": num_upper, "rig": rig.name, "rig_digest": digest,
+                   "device": str(device), "torch_threads": torch.get_num_threads(),
+                   "config": config.to_json(), "command_line": list(sys.argv)}
+        write_bytes_atomic(run_dir / "metrics.json", (json.dumps(summary, indent=2) + "\n").encode())
+        return summary
+    finally:
+        torch.set_num_threads(threads)

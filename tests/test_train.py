@@ -1,0 +1,137 @@
+"""reconstruction.train and `hemicube train` / `hemicube patterns show` on the mini rig (CPU, ~45 s)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import twin
+from reconstruction.network import AcquisitionNet
+from reconstruction.train import (CHECKPOINT_JSON, CHECKPOINT_TENSORS, TrainConfig, TrainError, export_patterns,
+                                  is_pair_step, load_checkpoint, train)
+from twin.cli import main
+from twin.patterns import load_patterns
+
+
+@pytest.fixture(scope="module")
+def run200(tmp_path_factory):
+    """An uninterrupted 200-step run with the default config, through the CLI."""
+    run = tmp_path_factory.mktemp("train") / "run200"
+    assert main(["train", "--rig", "mini", "--steps", "200", "-o", str(run), "--no-progress"]) == 0
+    return run
+
+
+def _rows(run):
+    return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_cli_train_writes_a_complete_run(run200, capsys):
+    rows = _rows(run200)
+    steps = [r["step"] for r in rows]
+    assert steps == sorted(set(steps)) and steps[0] == 0 and steps[-1] == 200
+    assert steps == [0, 50, 100, 150, 200]
+    for r in rows:
+        assert set(r) >= {"step", "train_loss", "heldout_loss", "wall_s", "lumitexels_per_s"}
+        assert np.isfinite(r["heldout_loss"])
+    assert rows[-1]["heldout_loss"] < rows[0]["heldout_loss"]
+    assert rows[-1]["heldout_loss"] < rows[1]["heldout_loss"]  # still improving after the first 50 steps
+    assert all(r["lumitexels_per_s"] > 0 for r in rows[1:])
+    assert [r["wall_s"] for r in rows] == sorted(r["wall_s"] for r in rows)
+
+    meta = json.loads((run200 / CHECKPOINT_JSON).read_text())
+    assert meta["step"] == 200 and (run200 / CHECKPOINT_TENSORS).is_file()
+    assert meta["config"]["steps"] == 200 and isinstance(meta["rng"]["torch"], list)
+    assert (run200 / "loss.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    summary = json.loads((run200 / "metrics.json").read_text())
+    assert summary["steps"] == 200
+    assert summary["final_heldout_loss"] == pytest.approx(rows[-1]["heldout_loss"])
+    assert summary["iterations_per_s"] > 0 and summary["lumitexels_per_s"] > 0
+    assert summary["command_line"]
+
+    rig = twin.load_rig("mini")
+    ps = load_patterns(run200 / "patterns.npz")
+    assert ps.num_patterns == 64 and ps.num_leds == rig.num_leds and ps.rig == "mini"
+    ps.check_rig(rig)
+    assert ps.names[:4] == ("learned_00+", "learned_00-", "learned_01+", "learned_01-")
+    assert all(ps.names[2 * k][:-1] == ps.names[2 * k + 1][:-1] and ps.names[2 * k].endswith("+")
+               and ps.names[2 * k + 1].endswith("-") for k in range(32))
+    lv = ps.levels.astype(int)
+    bottom = np.asarray(rig.is_bottom)
+    assert np.all(lv[:, bottom] == 0)
+    assert np.all(lv[..., 0] == lv[..., 1]) and np.all(lv[..., 0] == lv[..., 2])
+    assert np.all(np.minimum(lv[0::2], lv[1::2]) == 0)  # each LED lit in at most one frame of a pair
+    assert lv.max() > 0 and "step 200" in ps.note
+
+
+def test_export_matches_the_quantised_weights():
+    rig = twin.load_rig("mini")
+    cfg = TrainConfig()
+    torch.manual_seed(3)
+    model = AcquisitionNet(cfg.network_config(int((~np.asarray(rig.is_bottom)).sum())))
+    ps = export_patterns(model, rig)
+    w = ps.weights[..., 0]
+    signed = w[0::2] - w[1::2]  # (32, L)
+    q = model.patterns.quantised_weights()[0].detach().numpy()
+    upper = np.flatnonzero(~np.asarray(rig.is_bottom))
+    np.testing.assert_allclose(signed[:, upper], q, atol=1e-6)
+
+
+def test_pair_steps_are_evenly_spread():
+    assert sum(is_pair_step(i, 0.5) for i in range(200)) == 100
+    assert [is_pair_step(i, 0.5) for i in range(4)] == [False, True, False, True]
+    assert not any(is_pair_step(i, 0.0) for i in range(10)) and all(is_pair_step(i, 1.0) for i in range(10))
+
+
+def test_resume_reproduces_an_uninterrupted_run(run200, tmp_path):
+    run = tmp_path / "resumed"
+    assert main(["train", "--rig", "mini", "--steps", "100", "-o", str(run), "--no-progress"]) == 0
+    assert json.loads((run / CHECKPOINT_JSON).read_text())["step"] == 100
+    assert main(["train", "--rig", "mini", "--steps", "200", "-o", str(run), "--no-progress"]) == 0
+    meta_a, ta = load_checkpoint(run200)
+    meta_b, tb = load_checkpoint(run)
+    assert meta_b["step"] == 200 and meta_a["rng"] == meta_b["rng"]
+    assert set(ta) == set(tb) and any(k.startswith("optim.") for k in ta)
+    for k in ta:  # model parameters, BatchNorm buffers and Adam moments: bit for bit
+        assert torch.equal(ta[k], tb[k]), k
+    assert [r["step"] for r in _rows(run)] == [0, 50, 100, 150, 200]
+    np.testing.assert_array_equal(load_patterns(run / "patterns.npz").levels,
+                                  load_patterns(run200 / "patterns.npz").levels)
+    summary = json.loads((run / "metrics.json").read_text())
+    assert summary["resumed_from"] == 100 and summary["steps_this_invocation"] == 100
+
+
+def test_changed_config_is_refused(run200, capsys):
+    before = (run200 / CHECKPOINT_JSON).read_bytes()
+    with pytest.raises(TrainError, match="different config.*lr"):
+        train(TrainConfig(rig="mini", steps=200, lr=2e-3), run200, progress=False)
+    assert main(["train", "--rig", "mini", "--steps", "300", "--seed", "7", "-o", str(run200), "--no-progress"]) == 2
+    assert "different config" in capsys.readouterr().err
+    assert (run200 / CHECKPOINT_JSON).read_bytes() == before  # untouched
+
+
+def test_patterns_show_and_measurements(run200, tmp_path, capsys):
+    out = tmp_path / "x.png"
+    assert main(["patterns", "show", str(run200 / "patterns.npz"), "-o", str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    out1 = tmp_path / "one.png"
+    assert main(["patterns", "show", str(run200 / "patterns.npz"), "-o", str(out1), "--index", "3", "--rig", "mini"]) == 0
+    assert out1.is_file()
+
+    rig = twin.load_rig("mini")
+    ps = load_patterns(run200 / "patterns.npz")
+    P = 5
+    pos = np.zeros((P, 3)) + np.asarray(rig.sample.origin)
+    pos[:, 0] += np.linspace(-20, 20, P)
+    nrm = np.tile(np.asarray(rig.sample.normal, float), (P, 1))
+    tan = np.tile(np.asarray(rig.sample.x_axis, float), (P, 1))
+    B = twin.measurements(rig, pos, nrm, tan, [[0.5] * 3] * P, [[2.0] * 3] * P, [0.1] * P, [0.2] * P, patterns=ps)
+    B = np.asarray(B)
+    assert B.shape == (P, 64, 3) and np.all(np.isfinite(B)) and np.all(B >= 0) and B.max() > 0
+
+    from twin.capture import build_patterns  # what `hemicube capture --patterns` does with the file
+
+    plan = build_patterns(rig, ps)
+    assert plan.names[:64] == ps.names and np.array_equal(plan.levels[:64], ps.levels)
