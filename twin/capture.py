@@ -61,7 +61,12 @@ class Photo:
 
 
 def build_patterns(rig, learned=None):
-    learned = learned or pattern_sets.placeholder_learned(rig)
+    """The plan's pattern set: the learned frames given, else those of the network shipped for this rig
+    (reconstruction.pretrained; the mini rig's), else a seeded placeholder."""
+    if learned is None:
+        from reconstruction.pretrained import pretrained_patterns
+
+        learned = pretrained_patterns(rig) or pattern_sets.placeholder_learned(rig)
     if learned.num_patterns != 64:
         raise CaptureError(f"the plan needs 64 learned frames (32 signed pairs), got {learned.num_patterns}")
     sets = [learned, pattern_sets.linear_lights(rig), pattern_sets.uniform(rig)]
