@@ -33,7 +33,6 @@ train_swap_loss: the raw mean albedo_swap_loss of the pair steps. lumitexels_per
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -45,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from twin.atomic import atomic_path, write_bytes_atomic
+from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
 
 from .data import LumitexelStream, SamplingConfig, heldout_set
 from .network import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
@@ -130,14 +129,6 @@ def is_pair_step(i: int, fraction: float) -> bool:
 # ------------------------------------------------------------------------------------------ checkpoints
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _rng_state(device: torch.device) -> dict:
     out = {"torch": torch.get_rng_state().tolist()}
     if device.type == "cuda":
@@ -164,7 +155,7 @@ def _save_checkpoint(run_dir: Path, model, opt, step: int, config: TrainConfig, 
     with atomic_path(path) as tmp:
         save_file(tensors, str(tmp), metadata={"step": str(step)})
     meta = {"format": "hemicube-train-checkpoint", "version": 1, "step": int(step), "tensors": CHECKPOINT_TENSORS,
-            "sha256": _sha256(path), "config": config.to_json(), "rig_digest": rig_digest,
+            "sha256": file_sha256(path), "config": config.to_json(), "rig_digest": rig_digest,
             "rng": _rng_state(device), "wall_s": float(wall_s)}
     write_bytes_atomic(run_dir / CHECKPOINT_JSON, json.dumps(meta).encode())
 
@@ -182,7 +173,7 @@ def load_checkpoint(run_dir) -> tuple[dict, dict] | None:
     except (OSError, ValueError) as e:
         raise TrainError(f"{jpath}: not a readable checkpoint ({e})") from None
     tpath = run_dir / meta.get("tensors", CHECKPOINT_TENSORS)
-    if not tpath.is_file() or _sha256(tpath) != meta.get("sha256"):
+    if not tpath.is_file() or file_sha256(tpath) != meta.get("sha256"):
         raise TrainError(f"{jpath} does not name {tpath.name} (missing or different sha256: the run was "
                          "interrupted while saving a checkpoint); start a new run folder")
     return meta, load_file(str(tpath))

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from . import pattern_sets
-from .atomic import atomic_path, write_bytes_atomic
+from .atomic import atomic_path, file_sha256, write_bytes_atomic
 
 FORMAT_NAME = "hemicube-capture"
 FORMAT_VERSION = 1
@@ -90,14 +90,6 @@ def paper_plan(rig, patterns) -> list[Photo]:
     return plan
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _frame_id(photo: Photo, j: int) -> int:
     """Counter for the sensor's random stream: unique per (photo, camera, exposure), not per run order."""
     return (photo.index * 8 + photo.camera_index) * 16 + j
@@ -127,7 +119,7 @@ class Session:
 
     def verified(self, rel: str) -> bool:
         p = self.dir / rel
-        return rel in self.files and p.is_file() and _sha256(p) == self.files[rel]
+        return rel in self.files and p.is_file() and file_sha256(p) == self.files[rel]
 
     def photo_done(self, photo: Photo) -> bool:
         rec = self.photos.get(photo.stem)
@@ -142,7 +134,7 @@ class Session:
         path = self.dir / rel
         with atomic_path(path) as tmp:
             writer(tmp)
-        self.files[rel] = _sha256(path)
+        self.files[rel] = file_sha256(path)
 
     def record(self, photo: Photo, rec: dict) -> None:
         self.photos[photo.stem] = rec
@@ -157,7 +149,7 @@ def verify(directory) -> list[str]:
     """Files of a session whose checksum does not match the manifest (empty when all verify)."""
     d = Path(directory)
     doc = json.loads((d / "manifest.json").read_text())
-    return [rel for rel, h in doc["files"].items() if not (d / rel).is_file() or _sha256(d / rel) != h]
+    return [rel for rel, h in doc["files"].items() if not (d / rel).is_file() or file_sha256(d / rel) != h]
 
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
@@ -193,7 +185,7 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
                 shutil.rmtree(out / folder)
             writer(out / folder)
             for f in sorted((out / folder).iterdir()):
-                session.files[f"{folder}/{f.name}"] = _sha256(f)
+                session.files[f"{folder}/{f.name}"] = file_sha256(f)
     sims = {"sample": BACKENDS[backend](rig, maps, seed=seed, device=device),
             "empty": BACKENDS[backend](rig, None, seed=seed, device=device)}
     for c, cam in enumerate(rig.cameras):
