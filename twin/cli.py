@@ -151,6 +151,15 @@ def cmd_train(args) -> int:
     return 0
 
 
+def _pattern_image_args(s) -> None:
+    """`show pattern` and `patterns show`: the same command under both names."""
+    s.add_argument("file")
+    s.add_argument("-o", "--output", required=True)
+    s.add_argument("--rig", help="rig (default: the one the pattern file names)")
+    s.add_argument("--index", type=int, help="only this frame")
+    s.set_defaults(func=cmd_show_pattern)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hemicube", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -179,12 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", help="PNG path; without it an interactive window opens")
     s.add_argument("--size", type=int, nargs=2, default=(1200, 900), metavar=("W", "H"))
     s.set_defaults(func=cmd_show_rig)
-    s = show.add_parser("pattern", help="a pattern set as unfolded-cube (cross) images")
-    s.add_argument("file")
-    s.add_argument("-o", "--output", required=True)
-    s.add_argument("--rig", help="rig (default: the one the pattern file names)")
-    s.add_argument("--index", type=int, help="only this frame")
-    s.set_defaults(func=cmd_show_pattern)
+    _pattern_image_args(show.add_parser("pattern", help="a pattern set as unfolded-cube (cross) images"))
 
     s = sub.add_parser("capture", help="run the capture plan (193+ HDR photos) into a session folder")
     s.add_argument("--backend", default="sim", help="device backend (sim; real hardware backends later)")
@@ -221,12 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_train)
 
     pats = sub.add_parser("patterns", help="pattern files").add_subparsers(dest="patterns_command", required=True)
-    s = pats.add_parser("show", help="a pattern set as unfolded-cube (cross) images")
-    s.add_argument("file")
-    s.add_argument("-o", "--output", required=True)
-    s.add_argument("--rig", help="rig (default: the one the pattern file names)")
-    s.add_argument("--index", type=int, help="only this frame")
-    s.set_defaults(func=cmd_show_pattern)
+    _pattern_image_args(pats.add_parser("show", help="a pattern set as unfolded-cube (cross) images"))
 
     bench = sub.add_parser("bench", help="benchmarks; print JSON").add_subparsers(dest="bench_command", required=True)
     s = bench.add_parser("lumitexel", help="LED-BRDF evaluations per second vs a plain torch baseline")

@@ -30,11 +30,10 @@ import warp as wp
 
 from . import lumitexel as K
 from .emitter import PROFILE_COSINE, PROFILE_MODES, led_u_axes
-from .ggx import brdf_modes
+from .ggx import brdf_modes, check_material
 
 OPENSVBRDF_RENDER_SCALE = 100.0 * math.pi  # S_render, reference §2.1
 OPENSVBRDF_PHOTO_SCALE = OPENSVBRDF_RENDER_SCALE * 3000.0 / math.pi  # 3e5, reference §2.1
-UNIT_TOLERANCE = 1e-3  # |1 - |v|| allowed for normals and tangents (float32 textures round to ~1e-7)
 
 
 @dataclass(frozen=True)
@@ -161,18 +160,13 @@ def validate_points(position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, t
         raise ValueError(f"position must have shape (P, 3), got {pos.shape}")
     P = pos.shape[0]
 
-    def vec(name, x, unit=False):
+    def vec(name, x):
         a = arr(name, x)
         if a.shape != (P, 3):
             if a.shape in ((P,), (P, 1)) and name.startswith("rho"):
                 a = np.repeat(a.reshape(P, 1), 3, axis=1)
             else:
                 raise ValueError(f"{name} must have shape ({P}, 3) like position, got {a.shape}")
-        if unit:
-            bad = np.flatnonzero(np.abs(np.linalg.norm(a, axis=1) - 1) > UNIT_TOLERANCE)
-            if bad.size:
-                raise ValueError(f"{name} must be unit vectors: point {bad[0]} has length "
-                                 f"{np.linalg.norm(a[bad[0]]):.6f} ({bad.size} point(s))")
         return a
 
     def scal(name, x):
@@ -181,18 +175,10 @@ def validate_points(position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, t
             raise ValueError(f"{name} must have shape ({P},) like position, got {np.shape(x)}")
         return a
 
-    n, t = vec("normal", normal, True), vec("tangent", tangent, True)
-    par = np.flatnonzero(np.linalg.norm(np.cross(n, t), axis=1) < 1e-3)
-    if par.size:
-        raise ValueError(f"tangent is parallel to the normal at point {par[0]}; no local frame exists")
+    n, t = vec("normal", normal), vec("tangent", tangent)
     rd, rs = vec("rho_d", rho_d), vec("rho_s", rho_s)
-    for name, a in (("rho_d", rd), ("rho_s", rs)):
-        if np.any(a < 0):
-            raise ValueError(f"{name} must be >= 0 (albedo), got min {a.min():g}")
     ax, ay = scal("alpha_x", alpha_x), scal("alpha_y", alpha_y)
-    for name, a in (("alpha_x", ax), ("alpha_y", ay)):
-        if np.any(a <= 0):
-            raise ValueError(f"{name} must be > 0 (GGX roughness), got min {a.min():g}")
+    check_material(n, t, rd, rs, ax, ay)
     beta = np.zeros(P) if transparency is None else scal("transparency", transparency)
     if np.any((beta < 0) | (beta > 1)):
         raise ValueError("transparency must lie in [0, 1]")

@@ -300,16 +300,36 @@ def _scalars(name: str, x, n: int) -> np.ndarray:
         raise ValueError(f"{name} must have shape ({n},), got {a.shape}")
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} contains NaN or Inf")
-    if np.any(a <= 0.0):
-        raise ValueError(f"{name} must be > 0 (GGX roughness), got min {a.min()}")
     return a
 
 
-def _unit(name: str, a: np.ndarray) -> None:
-    # The contract is unit vectors; 1e-3 accepts float32 round-off and catches un-normalised input.
-    bad = np.abs(np.linalg.norm(a, axis=1) - 1.0) > 1e-3
-    if np.any(bad):
-        raise ValueError(f"{name} must be unit vectors (|v| = 1 ± 1e-3); row {int(np.argmax(bad))} is not")
+UNIT_TOLERANCE = 1e-3  # |1 - |v|| accepted: float32 round-off passes, un-normalised input does not
+MIN_FRAME_SIN = 1e-3  # |n x t| below this: Gram-Schmidt of t would amplify float32 error by > 1e3
+
+
+def check_unit(name: str, a: np.ndarray) -> None:
+    """(N, 3) unit vectors, or a ValueError naming the first bad row."""
+    norm = np.linalg.norm(a, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > UNIT_TOLERANCE)
+    if bad.size:
+        raise ValueError(f"{name} must be unit vectors (|v| = 1 ± {UNIT_TOLERANCE:g}): row {bad[0]} has length "
+                         f"{norm[bad[0]]:.6f} ({bad.size} row(s))")
+
+
+def check_material(normal, tangent, rho_d, rho_s, alpha_x, alpha_y) -> None:
+    """The per-point BRDF parameters' contract (shapes already checked): unit normal and tangent, a
+    tangent not parallel to the normal, albedos >= 0, roughness > 0."""
+    check_unit("normal", normal)
+    check_unit("tangent", tangent)
+    par = np.flatnonzero(np.linalg.norm(np.cross(normal, tangent), axis=1) < MIN_FRAME_SIN)
+    if par.size:
+        raise ValueError(f"tangent must not be parallel to the normal (row {par[0]}): no local frame exists")
+    for k, v in (("rho_d", rho_d), ("rho_s", rho_s)):
+        if np.any(v < 0.0):
+            raise ValueError(f"{k} must be >= 0 (albedo), got min {v.min():g}")
+    for k, v in (("alpha_x", alpha_x), ("alpha_y", alpha_y)):
+        if np.any(v <= 0.0):
+            raise ValueError(f"{k} must be > 0 (GGX roughness), got min {v.min():g}")
 
 
 def brdf_modes(g: str, fresnel: str, eta: float, eps: float = 0.0) -> tuple[int, int, float, float]:
@@ -349,14 +369,10 @@ def brdf(wi, wo, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *, g: str = "s
     n = wi.shape[0]
     wo, normal, tangent = (_vectors(k, v, n) for k, v in (("wo", wo), ("normal", normal), ("tangent", tangent)))
     rho_d, rho_s = (_vectors(k, v, n) for k, v in (("rho_d", rho_d), ("rho_s", rho_s)))
-    for k, v in (("rho_d", rho_d), ("rho_s", rho_s)):
-        if np.any(v < 0.0):
-            raise ValueError(f"{k} must be >= 0 (albedo), got min {v.min()}")
     ax, ay = _scalars("alpha_x", alpha_x, n), _scalars("alpha_y", alpha_y, n)
-    for k, v in (("wi", wi), ("wo", wo), ("normal", normal), ("tangent", tangent)):
-        _unit(k, v)
-    if np.any(np.linalg.norm(np.cross(normal, tangent), axis=1) < 1e-6):
-        raise ValueError("tangent must not be parallel to normal")
+    check_unit("wi", wi)
+    check_unit("wo", wo)
+    check_material(normal, tangent, rho_d, rho_s, ax, ay)
     g_mode, f_mode, eta, eps = brdf_modes(g, fresnel, eta, eps)
     if n == 0:
         return np.zeros((0, 3), dtype=npt)
