@@ -15,7 +15,15 @@ A run folder holds
                              channels; usable as `hemicube capture --patterns`
     loss.png                 train and held-out loss vs step
     metrics.json             summary (final held-out loss, steps, wall time, iterations/s, lumitexels/s,
-                             command line)
+                             command line, whether the invocation stopped on its time limit)
+
+Chunks. `train(..., time_limit=S)` (`hemicube train --time-limit S`) stops once S seconds have passed since
+the call began, after the step in hand: it evaluates the held-out set there (one extra metrics row), writes
+a checkpoint and the outputs, and returns with "stopped_on_time_limit": true. Re-running the same command
+resumes. This exists for machines lent in slices of a few minutes (the paper rig's GPU training); the
+limit is not part of the config (a chunk's length does not change the trained model), and at least one
+step runs per call, so repeated calls always progress. The final checkpoint save (about 2 GB for the paper
+rig) comes after the limit: leave a margin for it.
 
 Steps. Step i (0-based) trains on batch i of the data stream, so a resumed run sees exactly the data of an
 uninterrupted one; the global torch RNG (dropout, measurement noise) is saved in the checkpoint and
@@ -179,6 +187,23 @@ def load_checkpoint(run_dir) -> tuple[dict, dict] | None:
     return meta, load_file(str(tpath))
 
 
+def load_run_model(run_dir, device="cpu") -> AcquisitionNet:
+    """The network of a `hemicube train` run folder (its latest checkpoint), in eval mode."""
+    import twin
+
+    ckpt = load_checkpoint(run_dir)
+    if ckpt is None:
+        raise TrainError(f"{run_dir}: not a training run folder (no {CHECKPOINT_JSON})")
+    meta, tensors = ckpt
+    config = TrainConfig.from_json(meta["config"])
+    rig = twin.load_rig(config.rig)
+    if rig.digest() != meta.get("rig_digest"):
+        raise TrainError(f"{run_dir}: trained on a rig (digest {meta.get('rig_digest')}) other than {config.rig!r}")
+    model = AcquisitionNet(config.network_config(int((~np.asarray(rig.is_bottom)).sum())))
+    model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    return model.to(device).eval()
+
+
 def _check_resumable(meta: dict, config: TrainConfig, rig_digest: str, run_dir: Path) -> None:
     old = {k: v for k, v in meta["config"].items() if k not in RESUMABLE_FIELDS}
     new = {k: v for k, v in config.to_json().items() if k not in RESUMABLE_FIELDS}
@@ -269,14 +294,18 @@ def _evaluate(model, held) -> float:
     return loss
 
 
-def train(config: TrainConfig, run_dir, progress: bool = True) -> dict:
-    """Train (or resume) the acquisition network in `run_dir`; return the summary written to metrics.json."""
+def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float | None = None) -> dict:
+    """Train (or resume) the acquisition network in `run_dir`; return the summary written to metrics.json.
+    time_limit: seconds from this call's start after which the run checkpoints and stops (see "Chunks")."""
+    t_call = time.perf_counter()  # the limit counts setup too (rig, held-out set, a 2 GB checkpoint load)
     import twin
     from tqdm import tqdm
     from twin.patterns import save_patterns
 
     if not isinstance(config, TrainConfig):
         raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
+    if time_limit is not None and not (isinstance(time_limit, (int, float)) and time_limit >= 0):
+        raise ValueError(f"time_limit must be a number of seconds >= 0, got {time_limit!r}")
     run_dir = Path(run_dir)
     device = torch.device(config.device)
     rig = twin.load_rig(config.rig)
@@ -315,7 +344,7 @@ def train(config: TrainConfig, run_dir, progress: bool = True) -> dict:
         t0 = time.perf_counter()
         last_eval_t, last_samples = t0, 0
         samples, window_plain, window_swap = 0, [], []
-        heldout = None
+        heldout, stopped = None, False
         with open(mpath, "a") as mf:
             def log(step: int):
                 nonlocal last_eval_t, last_samples, window_plain, window_swap, heldout
@@ -364,8 +393,15 @@ def train(config: TrainConfig, run_dir, progress: bool = True) -> dict:
                 if step % config.checkpoint_every == 0 and step != config.steps:
                     _save_checkpoint(run_dir, model, opt, step, config, digest, device,
                                      wall_before + time.perf_counter() - t0)
+                if time_limit is not None and step != config.steps and time.perf_counter() - t_call >= time_limit:
+                    # chunk over: evaluate here unless just done (held-out eval uses no RNG, so the
+                    # resumed run still equals an uninterrupted one), then checkpoint below at `step`
+                    stopped = True
+                    if step % config.eval_every != 0:
+                        log(step)
+                    break
             bar.close()
-            end = max(start, config.steps)
+            end = step if stopped else max(start, config.steps)
             if heldout is None:  # nothing to run (resumed at or past the end): evaluate what is there
                 heldout = _evaluate(model, held)
         loop_s = time.perf_counter() - t0
@@ -378,6 +414,7 @@ def train(config: TrainConfig, run_dir, progress: bool = True) -> dict:
         rows = _read_metrics(mpath)
         _plot_loss(rows, run_dir / "loss.png")
         summary = {"final_heldout_loss": heldout, "steps": end, "steps_this_invocation": ran,
+                   "target_steps": config.steps, "stopped_on_time_limit": stopped, "time_limit_s": time_limit,
                    "resumed_from": start if ckpt is not None else None,
                    "wall_s": wall_before + loop_s, "wall_s_this_invocation": loop_s,
                    "iterations_per_s": ran / loop_s if ran and loop_s > 0 else None,

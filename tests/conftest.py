@@ -68,6 +68,19 @@ def mini():
 
 
 @pytest.fixture(scope="session")
+def validate_dir(tmp_path_factory):
+    """A `hemicube validate` output folder whose capture (mini rig, ramps, seed 1: the main job's defaults)
+    is taken once per session; reconstruction tests read it, the main-job test resumes it (verified, not
+    retaken)."""
+    import twin
+    from twin.capture import capture
+
+    out = tmp_path_factory.mktemp("validate")
+    capture(twin.load_rig("mini"), "ramps", out / "capture", seed=1, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
 def imported(reference_dir):
     from twin.opensvbrdf_import import import_opensvbrdf
 

@@ -135,3 +135,30 @@ def test_patterns_show_and_measurements(run200, tmp_path, capsys):
 
     plan = build_patterns(rig, ps)
     assert plan.names[:64] == ps.names and np.array_equal(plan.levels[:64], ps.levels)
+
+
+def test_time_limit_chunks_resume_to_the_uninterrupted_run(run200, tmp_path, capsys):
+    """--time-limit 0: each call runs one step, checkpoints and stops; re-running the same command
+    resumes, and the chunked run ends bit for bit where the uninterrupted one does (GPU chunks rely on it)."""
+    run = tmp_path / "chunked"
+    args = ["train", "--rig", "mini", "--steps", "200", "-o", str(run), "--no-progress"]
+    assert main(args + ["--time-limit", "0"]) == 0
+    assert "stopped on the time limit" in capsys.readouterr().out
+    summary = json.loads((run / "metrics.json").read_text())
+    assert summary["stopped_on_time_limit"] and summary["steps"] == 1 and summary["target_steps"] == 200
+    assert json.loads((run / CHECKPOINT_JSON).read_text())["step"] == 1
+    assert [r["step"] for r in _rows(run)] == [0, 1]  # the chunk's end is evaluated
+    assert main(args + ["--time-limit", "0"]) == 0  # a second chunk: one more step
+    assert json.loads((run / CHECKPOINT_JSON).read_text())["step"] == 2
+    assert main(args + ["--time-limit", "1e9"]) == 0  # the limit is no part of the config
+    summary = json.loads((run / "metrics.json").read_text())
+    assert not summary["stopped_on_time_limit"] and summary["resumed_from"] == 2 and summary["steps"] == 200
+    meta_a, ta = load_checkpoint(run200)
+    meta_b, tb = load_checkpoint(run)
+    assert meta_a["rng"] == meta_b["rng"] and set(ta) == set(tb)
+    for k in ta:
+        assert torch.equal(ta[k], tb[k]), k
+    full = {r["step"]: r["heldout_loss"] for r in _rows(run200)}
+    rows = _rows(run)
+    assert [r["step"] for r in rows] == [0, 1, 2, 50, 100, 150, 200]
+    assert all(r["heldout_loss"] == full[r["step"]] for r in rows if r["step"] in full)

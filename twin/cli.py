@@ -123,7 +123,23 @@ def cmd_capture(args) -> int:
 def cmd_validate(args) -> int:
     from .validate import run_validation
 
-    return run_validation(rig=args.rig, sample=args.sample, device=args.device, as_json=args.json)
+    return run_validation(rig=args.rig, sample=args.sample, device=args.device, as_json=args.json,
+                          output=args.output, resolution=args.resolution, seed=args.seed,
+                          progress=not args.no_progress)
+
+
+def cmd_reconstruct(args) -> int:
+    from dataclasses import replace
+
+    from reconstruction.pipeline import ReconstructConfig, reconstruct
+
+    over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm),
+                              ("holdout_line", args.holdout_line), ("network", args.network),
+                              ("device", args.device)) if v is not None}
+    r = reconstruct(args.capture, args.output, replace(ReconstructConfig(), **over), progress=not args.no_progress)
+    print(f"reconstruction: {r.directory} ({r.grid.resolution}^2 texels over {r.grid.size_mm:.1f} mm; "
+          + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in r.timings.items()) + ")")
+    return 0
 
 
 def cmd_bench(args) -> int:
@@ -142,12 +158,16 @@ def cmd_train(args) -> int:
     over = {k: v for k, v in (("steps", args.steps), ("batch", args.batch), ("lr", args.lr), ("seed", args.seed),
                               ("device", args.device), ("eval_every", args.eval_every),
                               ("checkpoint_every", args.checkpoint_every),
-                              ("pair_fraction", args.pair_fraction)) if v is not None}
+                              ("pair_fraction", args.pair_fraction), ("dropout", args.dropout))
+            if v is not None}
     cfg = replace(cfg, **over)
-    m = train(cfg, args.output, progress=not args.no_progress)
+    m = train(cfg, args.output, progress=not args.no_progress, time_limit=args.time_limit)
     ips = m["iterations_per_s"]
     print(f"trained {m['steps']} steps in {args.output}: final held-out loss (Eq. 3) {m['final_heldout_loss']:.6g}"
           + (f", {ips:.2f} it/s, {m['lumitexels_per_s']:.0f} lumitexels/s" if ips else ""))
+    if m["stopped_on_time_limit"]:
+        print(f"stopped on the time limit ({args.time_limit:g} s) at step {m['steps']} of {cfg.steps}; "
+              "run the same command again to resume")
     return 0
 
 
@@ -208,7 +228,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sample", default="ramps")
     s.add_argument("--device", default="cpu")
     s.add_argument("--json", action="store_true")
+    s.add_argument("-o", "--output", default="hemicube-validate",
+                   help="folder for the capture, the reconstruction and the report (default ./hemicube-validate)")
+    s.add_argument("--resolution", type=int, help="texture grid texels per side (default: the pipeline's, 48)")
+    s.add_argument("--seed", type=int, default=1, help="the virtual capture's seed")
+    s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_validate)
+
+    s = sub.add_parser("reconstruct", help="capture folder -> latents and OpenSVBRDF maps")
+    s.add_argument("capture", help="a capture folder (hemicube capture, or the real device's)")
+    s.add_argument("-o", "--output", required=True)
+    s.add_argument("--resolution", type=int, help="texture grid texels per side (default 48)")
+    s.add_argument("--size-mm", type=float, help="texture grid side in mm (default: detected, reference §6.1)")
+    s.add_argument("--holdout-line", type=int, help="line photo left out of fine-tuning (default: the brightest)")
+    s.add_argument("--network", help="'pretrained' (default) or a `hemicube train` run folder")
+    s.add_argument("--device", help="cpu (default) or cuda")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_reconstruct)
 
     s = sub.add_parser("train", help="train the acquisition network (resumable); writes learned patterns")
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder")
@@ -220,6 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--eval-every", type=int)
     s.add_argument("--checkpoint-every", type=int)
     s.add_argument("--pair-fraction", type=float, help="fraction of albedo-swap steps (default 0.5)")
+    s.add_argument("--dropout", type=float, help="dropout on every layer but the last (default 0.3, paper §6)")
+    s.add_argument("--time-limit", type=float, metavar="SECONDS",
+                   help="checkpoint and stop after this many seconds (re-run to resume): chunks for lent machines")
     s.add_argument("-o", "--output", required=True, help="run folder (re-run to resume)")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_train)

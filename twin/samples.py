@@ -227,21 +227,27 @@ def _check_fits(maps: SVBRDFMaps, sample_plane) -> None:
                           f"at most {max_size:g} mm", "size_mm")
 
 
-def texel_coordinates(maps: SVBRDFMaps) -> tuple[np.ndarray, np.ndarray]:
-    """Plane coordinates (mm, float64) of the texel centres: x (W,) along columns and y (H,) along rows."""
-    h, w = maps.shape
-    s = maps.size_mm
-    x = -0.5 * s + (np.arange(w) + 0.5) * (s / w)
-    y = -0.5 * s + (np.arange(h) + 0.5) * (s / h)
+def grid_coordinates(size_mm: float, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Plane coordinates (mm, float64) of the centres of a square size_mm grid of shape (H, W) centred on the
+    plane origin: x (W,) along columns and y (H,) along rows (the maps' convention, module docstring)."""
+    h, w = shape
+    x = -0.5 * size_mm + (np.arange(w) + 0.5) * (size_mm / w)
+    y = -0.5 * size_mm + (np.arange(h) + 0.5) * (size_mm / h)
     return x, y
 
 
-def texel_positions(maps: SVBRDFMaps, sample_plane) -> np.ndarray:
-    """World positions (mm, float64) of the texel centres, (H, W, 3): origin + x·x_axis + y·y_axis."""
-    _check_fits(maps, sample_plane)
+def grid_positions(size_mm: float, shape: tuple[int, int], sample_plane) -> np.ndarray:
+    """World positions (mm, float64) of that grid's centres, (H, W, 3): origin + x·x_axis + y·y_axis. The
+    reconstruction's texture grid (reconstruction.extraction) uses the same convention as the maps."""
     o, ax, ay = _plane_axes(sample_plane)
-    x, y = texel_coordinates(maps)
+    x, y = grid_coordinates(size_mm, shape)
     return o + x[None, :, None] * ax + y[:, None, None] * ay
+
+
+def texel_positions(maps: SVBRDFMaps, sample_plane) -> np.ndarray:
+    """World positions (mm, float64) of the texel centres, (H, W, 3)."""
+    _check_fits(maps, sample_plane)
+    return grid_positions(maps.size_mm, maps.shape, sample_plane)
 
 
 def world_to_texel(maps: SVBRDFMaps, sample_plane, xyz) -> np.ndarray:

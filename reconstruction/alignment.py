@@ -1,0 +1,754 @@
+"""Two-view alignment: where each primary-camera pixel sees, in the secondary camera, the same point of the
+sample (paper §8; reference §6.1 step 5 and §6.2).
+
+    al = align_views(primary_hdr, secondary_hdr, rig)          # the uniform-light photos, k = 129
+    warped = warp_to_primary(secondary_photo, al)              # any secondary photo in the primary's grid
+    alignment_error(al, pixel_texel_cam00, pixel_texel_cam01)  # against the twin's ground-truth sidecars
+
+Two steps, as in the reference:
+
+1. **Coarse**: a homography of the sample plane, in UNDISTORTED pixel coordinates of both cameras (each
+   camera's own K and distortion from the rig; reference §6.1 step 1 undistorts with the original K).
+   Three ways to get it (`AlignConfig.coarse`):
+   * "sift": OpenCV SIFT keypoints of both tone-mapped photos, brute-force matching with Lowe's ratio test at
+     0.5 and a RANSAC homography (reference §6.1 step 5: threshold 4 px on images half the calibration
+     width, i.e. 8 px at the calibration width, scaled here with the image width). Keypoints are detected
+     on the raw photos and their coordinates undistorted (no resampling of the photos).
+   * "markers": the holder frame's ArUco markers (the paper's "ARTags"; dictionary, ids and 3-D corners from
+     `rig.frame`). Each camera's pose is solved from its own detected corners (cv2.solvePnP with its K and
+     distortion), and the homography is the one the two poses induce on the SAMPLE plane, which lies
+     `rig.frame.height` below the markers: a homography fitted to the marker corners directly would be that
+     of the frame's plane, off by the parallax of that height (~1 px in the mini rig's 45 deg view).
+   * "calibrated": the homography the two calibrated cameras (rig R, t) induce on the sample plane.
+2. **Dense** (`AlignConfig.dense`, reference §6.2): dense SIFT descriptors (SIFT Flow) of the primary photo
+   and of the secondary photo warped into the primary's pixel grid by the coarse mapping, then PatchMatch
+   from the primary to the warped secondary over integer offsets, so that offset 0 IS the coarse mapping.
+   Ours on top of the reference's integer result: a sub-pixel offset from a quadratic fit of the patch
+   cost over the 3 x 3 integer offsets around the best one, and a gate that keeps the coarse mapping
+   where the match is not distinctive (see `AlignConfig.gate`).
+
+Coordinates: pixel (x = column, y = row), centres at integers (twin.units). The map is returned in RAW
+(distorted) pixel coordinates of both cameras, as the photos are stored.
+
+Photos are linear HDR. SIFT needs 8-bit images and gradients that do not depend on the exposure, so each
+photo is tone-mapped on its own: divided by the 99.5th percentile of its grey level (mean of RGB), clipped
+to [0, 1] and raised to 1/2.2 (a display gamma); SIFT gets that grey image quantised to 8 bits, the dense
+descriptors get the same curve applied to each RGB channel, in float.
+
+Scale: the reference's pixel constants (cell 20 px, jumps 20..1, search radii 50..1, initial noise 30,
+ROI margin 25 px) are for images of the calibration's half resolution, 2664 px wide (reference §1.5,
+§6.2). They are scaled by (image width / 2664), rounded to whole pixels (at least 1) where they are integer
+offsets; the mini rig's 222-px images get a cell of 1.67 px, jumps (2, 1) and search radii (4, 2, 1).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = ["AlignConfig", "Alignment", "AlignmentError", "align_views", "warp_to_primary", "alignment_error",
+           "tone_map", "dense_sift", "patchmatch", "REFERENCE_WIDTH"]
+
+REFERENCE_WIDTH = 2664  # px: width of the primary camera's calibration (half sensor resolution, reference §1.5)
+COARSE_METHODS = ("sift", "markers", "calibrated")
+
+
+class AlignmentError(ValueError):
+    """Bad input, or a coarse method that cannot be used on these photos (too few matches, no markers)."""
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    """Settings of `align_views`. Pixel constants marked "reference px" are in pixels of a 2664-px-wide image
+    and are scaled with the image width (module docstring)."""
+
+    coarse: str = "sift"  # "sift" (reference §6.1), "markers" (paper §8: ARTags), "calibrated" (ours)
+    dense: bool = True  # dense SIFT + PatchMatch refinement (reference §6.2, paper §8)
+    # --- coarse: SIFT (reference §6.1 step 5) ---
+    ratio: float = 0.5  # Lowe's ratio test (reference)
+    ransac_px: float | None = None  # RANSAC reprojection threshold in undistorted px; None = 8 reference px
+    #                                  (the reference's 4 px on its half-size SIFT images)
+    min_inliers: int = 12  # ours: fewer RANSAC inliers than this is an error, not a homography
+    # --- coarse: markers (ours: the paper names ARTags, the released code does not use them) ---
+    min_markers: int = 2  # per camera, for a stable pose
+    marker_upsample: int = 4  # ours: ArUco needs >~ 4 px per marker cell; the mini rig's markers have ~2.5
+    # --- dense: SIFT Flow descriptors (reference §6.2) ---
+    cell_size: float | None = None  # px per descriptor cell; None = 20 reference px
+    orientation_sharpness: float = 9.0  # exponent on the orientation-bin cosine (reference)
+    norm_floor: float = 0.01  # descriptor / (|descriptor| + floor) (reference); tone-mapped grey levels per px
+    # --- dense: PatchMatch (reference §6.2) ---
+    patch: int = 7  # SSD patch side in px (reference and paper; not scaled)
+    iterations: int = 10  # (reference and paper)
+    jump_radii: tuple[float, ...] = (20, 10, 5, 2, 1)  # reference px (reference code)
+    search_radii: tuple[float, ...] = (50, 25, 12, 6, 3, 1)  # reference px (reference code, alpha = 0.5)
+    init_noise: float = 30  # reference px: initial offsets uniform in [-n, n) (reference code)
+    max_offset: float = 50  # reference px: offsets are limited to |dx|, |dy| <= this (ours; = the search radius)
+    gate: float = 4.0  # ours: keep the sub-pixel PatchMatch offset only where the patch cost rises, per px of
+    #                    offset, by more than `gate` times its minimum in every direction (smallest eigenvalue
+    #                    of the fitted cost Hessian > gate * minimum cost); elsewhere the coarse mapping stays
+    volume_budget_mb: float = 1024.0  # ours: precompute the cost of every offset when it fits, else evaluate
+    #                                    each PatchMatch candidate directly (same costs; see _PatchCost)
+    refine: bool = True  # ours: refit the homography to the dense matches, then match again relative to it
+    seed: int = 0  # PatchMatch's random initialisation and search (torch.Generator)
+    device: str = "cpu"
+
+    def __post_init__(self):
+        if self.coarse not in COARSE_METHODS:
+            raise ValueError(f"AlignConfig.coarse must be one of {COARSE_METHODS}, got {self.coarse!r}")
+        if not 0 < self.ratio <= 1:
+            raise ValueError(f"AlignConfig.ratio must be in (0, 1], got {self.ratio}")
+        if self.patch < 1 or self.patch % 2 == 0:
+            raise ValueError(f"AlignConfig.patch must be a positive odd number of pixels, got {self.patch}")
+        if self.iterations < 0 or self.min_inliers < 4 or self.min_markers < 1 or self.marker_upsample < 1:
+            raise ValueError("AlignConfig: iterations >= 0, min_inliers >= 4, min_markers >= 1 and "
+                             "marker_upsample >= 1 are required")
+        for name in ("ransac_px", "cell_size"):
+            v = getattr(self, name)
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ValueError(f"AlignConfig.{name} must be positive (or None for the scaled reference), got {v}")
+        for name in ("jump_radii", "search_radii"):
+            v = getattr(self, name)
+            if not v or any(not (np.isfinite(r) and r > 0) for r in v):
+                raise ValueError(f"AlignConfig.{name} must be a non-empty tuple of positive radii, got {v}")
+        for name in ("init_noise", "max_offset", "gate", "orientation_sharpness", "norm_floor",
+                     "volume_budget_mb"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"AlignConfig.{name} must be finite and >= 0, got {v}")
+
+
+@dataclass
+class Alignment:
+    """map (H0, W0, 2) float32: for every primary pixel (x, y), raw (distorted) coordinates, the secondary
+    pixel (x, y), raw coordinates, seeing the same sample point; NaN where unknown (off the secondary image).
+    homography: 3x3 float64, the coarse step, from UNDISTORTED primary pixels to UNDISTORTED secondary
+    pixels (each camera's own K): [x1, y1, 1] ~ H [x0, y0, 1].
+    info: what was done and measured (method, matches, inliers, markers, dense statistics, seconds)."""
+
+    map: np.ndarray
+    homography: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+# --- small helpers ----------------------------------------------------------------------------------------
+
+def _check_image(name, img, cam) -> np.ndarray:
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3):
+        raise AlignmentError(f"{name} image must be (H, W) or (H, W, 3), got shape {np.shape(img)}")
+    if a.shape[:2] != (cam.height, cam.width):
+        raise AlignmentError(f"{name} image is {a.shape[1]}x{a.shape[0]} (W x H) but camera {cam.name!r} is "
+                             f"{cam.width}x{cam.height}")
+    if not np.issubdtype(a.dtype, np.number):
+        raise AlignmentError(f"{name} image must be numeric, got {a.dtype}")
+    bad = int((~np.isfinite(a)).any(axis=2).sum())
+    if bad:
+        raise AlignmentError(f"{name} image has {bad} pixels with NaN or Inf; fill or mask them before aligning")
+    if a.max() <= 0:
+        raise AlignmentError(f"{name} image has no positive pixel (an empty photo?)")
+    return a.astype(np.float32)
+
+
+def tone_map(img: np.ndarray) -> np.ndarray:
+    """Linear HDR (H, W, C) -> [0, 1]: / 99.5th percentile of the grey level, clip, ^(1/2.2) (module doc)."""
+    grey = img.mean(axis=2)
+    white = float(np.percentile(grey, 99.5))
+    if white <= 0:
+        white = float(grey.max())
+    return np.clip(img / white, 0.0, 1.0) ** (1 / 2.2)
+
+
+def _to_u8(x: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(x * 255), 0, 255).astype(np.uint8)
+
+
+def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Sample (H, W, C) at float pixel coordinates (x = column, y = row), any shape; NaN outside
+    [0, W-1] x [0, H-1] or where x, y are NaN."""
+    H, W = img.shape[:2]
+    x = np.asarray(x, np.float64)
+    y = np.asarray(y, np.float64)
+    inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)  # False for NaN
+    xs, ys = np.where(inside, x, 0.0), np.where(inside, y, 0.0)
+    x0 = np.minimum(np.floor(xs).astype(np.int64), max(W - 2, 0))
+    y0 = np.minimum(np.floor(ys).astype(np.int64), max(H - 2, 0))
+    fx, fy = (xs - x0)[..., None], (ys - y0)[..., None]
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    out = ((img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy) + (img[y1, x0] * (1 - fx) + img[y1, x1] * fx) * fy)
+    out = out.astype(np.float64)
+    out[~inside] = np.nan
+    return out
+
+
+def _undistort_px(cam, uv: np.ndarray) -> np.ndarray:
+    """Raw pixels (N, 2) -> undistorted pixels of the same K."""
+    Kinv = np.linalg.inv(cam.K)
+    xy = (uv - cam.K[:2, 2]) @ Kinv[:2, :2].T
+    return cam.undistort(xy) @ cam.K[:2, :2].T + cam.K[:2, 2]
+
+
+def _distort_px(cam, uv: np.ndarray) -> np.ndarray:
+    """Undistorted pixels (N, 2) -> raw pixels."""
+    Kinv = np.linalg.inv(cam.K)
+    xy = (uv - cam.K[:2, 2]) @ Kinv[:2, :2].T
+    return cam.distort(xy) @ cam.K[:2, :2].T + cam.K[:2, 2]
+
+
+def _apply_h(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    p = uv @ H[:, :2].T + H[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[:, :2] / p[:, 2:3]
+
+
+def _coarse_map(cam0, cam1, H: np.ndarray, uv0_raw: np.ndarray) -> np.ndarray:
+    """Raw primary pixels (N, 2) -> raw secondary pixels through the undistorted-pixel homography."""
+    return _distort_px(cam1, _apply_h(H, _undistort_px(cam0, uv0_raw)))
+
+
+def _plane_to_pixels(K, R, t, rig) -> np.ndarray:
+    """3x3 homography from sample-plane coordinates (a, b) along (x_axis, y_axis) to undistorted pixels."""
+    sp = rig.sample
+    o, xa, ya = (np.asarray(v, float) for v in (sp.origin, sp.x_axis, sp.y_axis))
+    return K @ np.stack([R @ xa, R @ ya, R @ o + t], axis=1)
+
+
+def _scaled(values, scale) -> tuple[int, ...]:
+    """Reference-px integer radii at this image scale: rounded, at least 1, duplicates dropped, order kept."""
+    return tuple(dict.fromkeys(max(1, int(round(v * scale))) for v in values))
+
+
+# --- coarse step ------------------------------------------------------------------------------------------
+
+def _sift_homography(g0, g1, cam0, cam1, cfg, scale):
+    import cv2
+
+    sift = cv2.SIFT_create()
+    kp0, d0 = sift.detectAndCompute(_to_u8(g0), None)
+    kp1, d1 = sift.detectAndCompute(_to_u8(g1), None)
+    info = {"keypoints": [len(kp0), len(kp1)]}
+    if d0 is None or d1 is None or len(kp0) < 2 or len(kp1) < 2:
+        raise AlignmentError(f"sift: too few keypoints (primary {len(kp0)}, secondary {len(kp1)}); "
+                             "is the photo textured and exposed?")
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d0, d1, k=2)
+    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < cfg.ratio * m[1].distance]
+    info["matches"] = len(good)
+    if len(good) < cfg.min_inliers:
+        raise AlignmentError(f"sift: only {len(good)} matches pass the ratio test {cfg.ratio} (need "
+                             f">= {cfg.min_inliers}); try coarse='markers' or 'calibrated'")
+    p0 = _undistort_px(cam0, np.array([kp0[m.queryIdx].pt for m in good], np.float64))
+    p1 = _undistort_px(cam1, np.array([kp1[m.trainIdx].pt for m in good], np.float64))
+    thr = cfg.ransac_px if cfg.ransac_px is not None else 8.0 * scale
+    H, inl = cv2.findHomography(p0, p1, cv2.RANSAC, thr, maxIters=10000, confidence=0.9999)
+    n_in = int(inl.sum()) if inl is not None else 0
+    info.update(inliers=n_in, ransac_px=thr)
+    if H is None or n_in < cfg.min_inliers:
+        raise AlignmentError(f"sift: only {n_in} RANSAC inliers at {thr:.2f} px among {len(good)} matches "
+                             f"(need >= {cfg.min_inliers}); try coarse='markers' or 'calibrated'")
+    inl = inl.ravel().astype(bool)
+    info["residual_px"] = float(np.median(np.linalg.norm(_apply_h(H, p0[inl]) - p1[inl], axis=1)))
+    return H / H[2, 2], info
+
+
+def _marker_pose(g, cam, rig, cfg, label):
+    import cv2
+
+    fr = rig.frame
+    if fr is None or len(fr.marker_ids) == 0:
+        raise AlignmentError(f"markers: rig {rig.name!r} has no holder-frame markers; use coarse='sift' or "
+                             "'calibrated'")
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, fr.marker_dictionary)),
+                                  _aruco_parameters())
+    f = cfg.marker_upsample
+    img = _to_u8(g)
+    if f > 1:
+        img = cv2.resize(img, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
+    corners, ids, _ = det.detectMarkers(img)
+    known = {int(i): k for k, i in enumerate(fr.marker_ids)}
+    found = [] if ids is None else [(int(i), c.reshape(4, 2)) for i, c in zip(ids.ravel(), corners)
+                                    if int(i) in known]
+    if len(found) < cfg.min_markers:
+        raise AlignmentError(
+            f"markers: {len(found)} of the frame's {len(fr.marker_ids)} markers found in the {label} photo (need "
+            f">= {cfg.min_markers}); at {cam.width}x{cam.height} px a {fr.marker_size:g} mm marker may be too "
+            "small to decode. Use coarse='sift' or 'calibrated'")
+    img_pts = np.concatenate([(c + 0.5) / f - 0.5 for _, c in found])  # upsampled -> original pixel centres
+    obj_pts = np.concatenate([fr.marker_corners[known[i]] for i, _ in found])
+    ok, rvec, tvec = cv2.solvePnP(obj_pts, img_pts, cam.K, cam.dist, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok:
+        raise AlignmentError(f"markers: no camera pose from the {label} photo's markers")
+    rvec, tvec = cv2.solvePnPRefineLM(obj_pts, img_pts, cam.K, cam.dist, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj_pts, rvec, tvec, cam.K, cam.dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img_pts) ** 2, axis=1))))
+    return cv2.Rodrigues(rvec)[0], tvec.ravel(), {"ids": sorted(i for i, _ in found), "reprojection_px": rms}
+
+
+def _aruco_parameters():
+    import cv2
+
+    p = cv2.aruco.DetectorParameters()
+    p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX  # corners to a fraction of a pixel
+    return p
+
+
+def _coarse(g0, g1, cam0, cam1, rig, cfg, scale):
+    if cfg.coarse == "sift":
+        return _sift_homography(g0, g1, cam0, cam1, cfg, scale)
+    if cfg.coarse == "markers":
+        R0, t0, i0 = _marker_pose(g0, cam0, rig, cfg, "primary")
+        R1, t1, i1 = _marker_pose(g1, cam1, rig, cfg, "secondary")
+        info = {"markers": [i0["ids"], i1["ids"]], "reprojection_px": [i0["reprojection_px"], i1["reprojection_px"]]}
+    else:
+        (R0, t0), (R1, t1), info = (cam0.R, cam0.t), (cam1.R, cam1.t), {}
+    H = _plane_to_pixels(cam1.K, R1, t1, rig) @ np.linalg.inv(_plane_to_pixels(cam0.K, R0, t0, rig))
+    return H / H[2, 2], info
+
+
+# --- dense SIFT (reference §6.2; SIFT Flow, Liu et al.) ---------------------------------------------------
+
+def dense_sift(img: torch.Tensor, cell: float, sharpness: float = 9.0, floor: float = 0.01) -> torch.Tensor:
+    """(C, H, W) image -> (128, H, W) descriptors at every pixel: Sobel gradients of the channel with the
+    strongest gradient, 8 orientation bins (cosine to the bin's angle, clipped at 0, ^sharpness, times the
+    magnitude), each bin averaged under a tent of half-width `cell` (SIFT's bilinear spatial binning), read
+    at the 4 x 4 cell centres around the pixel (bilinear for fractional cells, reflection at the border),
+    then d / (|d| + floor)."""
+    C, H, W = img.shape
+    sob = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=img.dtype, device=img.device) / 8
+    x = F.pad(img[:, None], (1, 1, 1, 1), mode="replicate")
+    gx = F.conv2d(x, sob[None, None])[:, 0]
+    gy = F.conv2d(x, sob.T[None, None])[:, 0]
+    mag2 = gx * gx + gy * gy
+    k = mag2.argmax(dim=0, keepdim=True)
+    gx, gy = gx.gather(0, k)[0], gy.gather(0, k)[0]
+    mag = torch.sqrt(gx * gx + gy * gy)
+    ang = torch.arange(8, dtype=img.dtype, device=img.device) * (2 * np.pi / 8)
+    cos = (gx[None] * torch.cos(ang)[:, None, None] + gy[None] * torch.sin(ang)[:, None, None]) / mag.clamp_min(1e-12)
+    bins = cos.clamp_min(0) ** sharpness * mag[None]  # (8, H, W)
+    # tent filter of half-width `cell`, separable, normalised to sum 1
+    r = int(np.ceil(cell)) - 1 if float(cell).is_integer() else int(np.floor(cell))
+    taps = 1 - torch.abs(torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)) / cell
+    taps = (taps / taps.sum()).clamp_min(0)
+    b = bins[:, None]
+    if r > 0:
+        b = F.conv2d(F.pad(b, (r, r, 0, 0), mode="reflect"), taps.view(1, 1, 1, -1))
+        b = F.conv2d(F.pad(b, (0, 0, r, r), mode="reflect"), taps.view(1, 1, -1, 1))
+    b = b[:, 0]
+    # the 4 x 4 cell centres at (i - 1.5) * cell, i = 0..3, sampled with grid_sample (reflection)
+    c = (torch.arange(4, dtype=img.dtype, device=img.device) - 1.5) * cell
+    yy, xx = torch.meshgrid(torch.arange(H, dtype=img.dtype, device=img.device),
+                            torch.arange(W, dtype=img.dtype, device=img.device), indexing="ij")
+    oy, ox = torch.meshgrid(c, c, indexing="ij")
+    gxn = 2 * (xx[None] + ox.reshape(-1, 1, 1)) / max(W - 1, 1) - 1  # (16, H, W)
+    gyn = 2 * (yy[None] + oy.reshape(-1, 1, 1)) / max(H - 1, 1) - 1
+    grid = torch.stack([gxn, gyn], dim=-1)
+    d = F.grid_sample(b[None].expand(16, -1, -1, -1), grid, mode="bilinear", padding_mode="reflection",
+                      align_corners=True)  # (16 cells, 8 bins, H, W)
+    d = d.reshape(128, H, W)
+    return d / (torch.linalg.vector_norm(d, dim=0, keepdim=True) + floor)
+
+
+# --- PatchMatch (reference §6.2) --------------------------------------------------------------------------
+
+class _PatchCost:
+    """SSD over a patch x patch window between source descriptors around p and target descriptors around
+    p + o, for integer offsets o with |o_x|, |o_y| <= radius: cost(p, o) = sum_d |S(r(p + d)) - T(c(r(p + d)
+    + o))|^2, r reflecting into the image (the reference's reflection padding), c clamping.
+
+    Offsets are passed as linear indices (o_y + R)(2R + 1) + (o_x + R) (`encode`); the index (2R + 1)^2 is a
+    sentinel that costs +inf (no candidate). When the costs of all (2R + 1)^2 offsets fit `budget_bytes` they
+    are computed once (a cost volume: each PatchMatch candidate is then a lookup), else each candidate field
+    is evaluated directly: the same numbers up to float rounding (tests/test_alignment.py compares them)."""
+
+    def __init__(self, src: torch.Tensor, tgt: torch.Tensor, patch: int, radius: int, budget_bytes: float):
+        self.src, self.tgt, self.R, self.h = src, tgt, radius, patch // 2
+        D, H, W = src.shape
+        self.shape = (H, W)
+        self.k = 2 * radius + 1
+        self.sentinel = self.k ** 2
+        self.volume = None
+        if (self.sentinel + 1) * H * W * src.element_size() <= budget_bytes:
+            vol = self._box(self._volume()).reshape(self.sentinel, -1)
+            self.volume = torch.cat([vol, torch.full_like(vol[:1], float("inf"))])
+
+    def encode(self, off: torch.Tensor) -> torch.Tensor:
+        """(2, ...) integer (x, y) offsets, clamped to the window -> linear indices (...)."""
+        off = off.clamp(-self.R, self.R)
+        return (off[1] + self.R) * self.k + off[0] + self.R
+
+    def decode(self, idx: torch.Tensor) -> torch.Tensor:
+        return torch.stack([idx % self.k - self.R, idx // self.k - self.R])
+
+    def _volume(self) -> torch.Tensor:
+        """|S(p) - T(p + o)|^2 for every pixel and offset, (n, H, W), as |S|^2 + |T|^2 - 2 S.T with the dot
+        products from batched matrix products over strips of columns (one BLAS call per strip and row offset
+        instead of a pass over all descriptors per offset)."""
+        R, k = self.R, self.k
+        D, H, W = self.src.shape
+        S = self.src.permute(1, 2, 0).contiguous()  # (H, W, D)
+        T = F.pad(self.tgt[None], (R,) * 4, mode="replicate")[0].permute(1, 2, 0).contiguous()  # (H+2R, W+2R, D)
+        s2, t2 = (S * S).sum(-1), (T * T).sum(-1)
+        B = max(32, k)  # strip width: products of B x (B + 2R), of which the band of width 2R + 1 is kept
+        band = (torch.arange(B, device=S.device)[:, None] + torch.arange(k, device=S.device)[None, :])
+        vol = torch.empty(k, k, H, W, dtype=S.dtype, device=S.device)  # (oy, ox, y, x)
+        for oy in range(k):
+            rows = T[oy:oy + H]
+            dots = torch.cat([torch.bmm(S[:, xb:xb + B], rows[:, xb:xb + B + 2 * R].transpose(1, 2))
+                              .gather(2, band[:min(B, W - xb)].expand(H, -1, k)) for xb in range(0, W, B)], dim=1)
+            vol[oy] = (t2[oy:oy + H].unfold(1, k, 1) - 2 * dots + s2[..., None]).permute(2, 0, 1)
+        return vol.reshape(k * k, H, W).clamp_min_(0)
+
+    def _box(self, e: torch.Tensor) -> torch.Tensor:
+        h = self.h
+        if h == 0:
+            return e
+        e = F.pad(e[:, None], (h, h, h, h), mode="reflect")
+        return F.avg_pool2d(e, 2 * h + 1, stride=1)[:, 0] * (2 * h + 1) ** 2
+
+    def __call__(self, idx: torch.Tensor) -> torch.Tensor:
+        """idx (m, H, W) linear offset indices -> (m, H, W) costs."""
+        H, W = self.shape
+        m = idx.shape[0]
+        if self.volume is not None:
+            return self.volume.gather(0, idx.reshape(m, -1)).reshape(m, H, W)
+        off = self.decode(idx.clamp(max=self.sentinel - 1))  # (2, m, H, W)
+        dev = idx.device
+        ys = torch.arange(H, device=dev)[:, None]
+        xs = torch.arange(W, device=dev)[None, :]
+        src = self.src.reshape(self.src.shape[0], -1)
+        tgt = self.tgt.reshape(self.tgt.shape[0], -1)
+        total = torch.zeros(m, H, W, dtype=self.src.dtype, device=dev)
+        for dy in range(-self.h, self.h + 1):
+            for dx in range(-self.h, self.h + 1):
+                qy, qx = _reflect(ys + dy, H), _reflect(xs + dx, W)
+                s_ = src[:, (qy * W + qx).reshape(-1)].reshape(-1, 1, H, W)
+                ty = (qy + off[1]).clamp(0, H - 1)
+                tx = (qx + off[0]).clamp(0, W - 1)
+                t_ = tgt[:, (ty * W + tx).reshape(-1)].reshape(-1, m, H, W)
+                total += ((s_ - t_) ** 2).sum(0)
+        return torch.where(idx == self.sentinel, torch.full_like(total, float("inf")), total)
+
+
+def _reflect(i: torch.Tensor, n: int) -> torch.Tensor:
+    """Reflection without repeating the edge (torch's "reflect" padding), for |overshoot| < n."""
+    i = torch.where(i < 0, -i, i)
+    return torch.where(i > n - 1, 2 * (n - 1) - i, i)
+
+
+def patchmatch(cost: _PatchCost, *, init_noise: int, jumps, searches, iterations: int,
+               generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """PatchMatch over integer offset fields (reference §6.2), vectorised over all pixels. The initial
+    offsets are uniform in [-init_noise, init_noise) per axis. Each iteration: jump-flooding propagation,
+    where for each jump j (largest first) every pixel considers the offsets of its 8 neighbours at distance j
+    (out of the image: none), then random search, where every pixel considers its current offset plus
+    uniform integer noise in [-r, r] per axis for each radius r. A pixel takes the best candidate only where
+    it is strictly better than its current offset. Offsets stay within the cost's window (clamped). Returns
+    the (2, H, W) integer (x, y) offsets and their (H, W) costs."""
+    H, W = cost.shape
+    dev = cost.src.device
+    off = torch.randint(-init_noise, max(init_noise, 1), (2, H, W), generator=generator).to(dev)
+    idx = cost.encode(off)
+    best = cost(idx[None])[0]
+
+    def take(cands):  # (m, H, W) candidate indices; index 0 of the stack (the current one) wins ties
+        nonlocal idx, best
+        c = torch.cat([best[None], cost(cands)])
+        win = c.argmin(dim=0, keepdim=True)
+        idx = torch.cat([idx[None], cands]).gather(0, win)[0]
+        best = c.gather(0, win)[0]
+
+    dirs = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+    for _ in range(iterations):
+        for j in jumps:
+            padded = F.pad(idx[None], (j, j, j, j), value=cost.sentinel)[0]
+            take(torch.stack([padded[j + dy * j:j + dy * j + H, j + dx * j:j + dx * j + W] for dy, dx in dirs]))
+        current = cost.decode(idx)
+        noise = torch.stack([torch.randint(-r, r + 1, (2, H, W), generator=generator) for r in searches], dim=1)
+        take(cost.encode(current[:, None] + noise.to(dev)))
+    return cost.decode(idx), best
+
+
+def _subpixel(cost: _PatchCost, off: torch.Tensor):
+    """Quadratic fit of the cost over the 3 x 3 integer offsets around `off` (PatchMatch's integer answer):
+    c(o + d) ~ c0 + g.d + d'Hd/2 by least squares on the 9 values. Returns the sub-pixel step -H^-1 g
+    (clamped to [-0.5, 0.5] per axis; 0 where H is not positive definite), the fitted cost there, the Hessian
+    (H, W, 2, 2) and its smallest eigenvalue (NaN where the 3 x 3 leaves the offset window)."""
+    d = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+    shifts = torch.tensor(d, device=off.device).T.reshape(2, 9, 1, 1)
+    vals = cost(cost.encode(off[:, None] + shifts))
+    c = {dd: vals[i] for i, dd in enumerate(d)}
+    gx = (sum(c[1, dy] for dy in (-1, 0, 1)) - sum(c[-1, dy] for dy in (-1, 0, 1))) / 6
+    gy = (sum(c[dx, 1] for dx in (-1, 0, 1)) - sum(c[dx, -1] for dx in (-1, 0, 1))) / 6
+    hxx = sum(c[1, dy] + c[-1, dy] - 2 * c[0, dy] for dy in (-1, 0, 1)) / 3
+    hyy = sum(c[dx, 1] + c[dx, -1] - 2 * c[dx, 0] for dx in (-1, 0, 1)) / 3
+    hxy = (c[1, 1] + c[-1, -1] - c[1, -1] - c[-1, 1]) / 4
+    c0 = vals.mean(0) - (hxx + hyy) / 3  # least-squares constant term of the 9-point quadratic
+    det = hxx * hyy - hxy * hxy
+    pd = (det > 0) & (hxx > 0)
+    safe = torch.where(pd, det, torch.ones_like(det))
+    step = torch.stack([-(hyy * gx - hxy * gy) / safe, -(hxx * gy - hxy * gx) / safe]).clamp(-0.5, 0.5)
+    step = torch.where(pd[None], step, torch.zeros_like(step))
+    cmin = c0 + gx * step[0] + gy * step[1] + 0.5 * (hxx * step[0] ** 2 + 2 * hxy * step[0] * step[1]
+                                                    + hyy * step[1] ** 2)
+    lam_min = (hxx + hyy) / 2 - torch.sqrt(((hxx - hyy) / 2) ** 2 + hxy ** 2)
+    lam_min = torch.where((off.abs() >= cost.R).any(0), torch.full_like(lam_min, float("nan")), lam_min)
+    hess = torch.stack([torch.stack([hxx, hxy], -1), torch.stack([hxy, hyy], -1)], -2)
+    return step, cmin, hess, lam_min
+
+
+def _refit(H, field, roi, box, cam0, cam1, cfg):
+    """Refine the homography with the dense matches (ours): the correction H' = H T^-1 (I + E) T (E: 8
+    parameters, T normalising the undistorted primary pixels) minimising sum_p r_p' A_p r_p, r_p the
+    difference between the offset H' implies at pixel p (in the primary grid, through the local Jacobian of
+    the mapping by H) and the matched offset, A_p the fitted cost Hessian there (positive part). A_p is the
+    information of the match: an edge constrains only across itself, a corner in both directions, a flat
+    region not at all (the aperture problem). Pixels used: in the ROI, with a minimum rising by more than
+    cfg.gate x its depth in at least one direction. Robust: iteratively reweighted, weight 1 / m for a
+    residual of m > 1 px along the strong direction. Gauss-Newton with numerical derivatives."""
+    bx0, by0 = box[:2]
+    hess = field["hess"]
+    lam, vec = np.linalg.eigh(np.nan_to_num(hess))
+    use = roi & field["known"] & np.isfinite(field["lam_min"]) & \
+        (lam[..., 1] > cfg.gate * np.maximum(field["cmin"], 0)) & (lam[..., 1] > 0)
+    ys, xs = np.nonzero(use)
+    ys, xs = ys[::max(1, len(ys) // 20000)], xs[::max(1, len(xs) // 20000)]  # <= ~20k pixels: plenty for 8 numbers
+    if len(ys) < 64:
+        return H, {"pixels": int(len(ys)), "applied": False}
+    P = np.stack([xs + bx0, ys + by0], axis=1).astype(np.float64)
+    f = field["flow"][ys, xs]
+    A = np.einsum("nij,nj,nkj->nik", vec[ys, xs], np.maximum(lam[ys, xs], 0), vec[ys, xs])
+    lmax = lam[ys, xs, 1]
+    u = _undistort_px(cam0, P)
+    base = _distort_px(cam1, _apply_h(H, u))
+    ex, ey = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    J = np.stack([(_coarse_map(cam0, cam1, H, P + ex) - _coarse_map(cam0, cam1, H, P - ex)) / 2,
+                  (_coarse_map(cam0, cam1, H, P + ey) - _coarse_map(cam0, cam1, H, P - ey)) / 2], axis=2)
+    Jinv = np.linalg.inv(J)
+    c, s = u.mean(axis=0), u.std()
+    T = np.array([[1 / s, 0, -c[0] / s], [0, 1 / s, -c[1] / s], [0, 0, 1]])
+    Tinv = np.linalg.inv(T)
+
+    def homography(theta):
+        E = np.zeros(9)
+        E[:8] = theta
+        return H @ Tinv @ (np.eye(3) + E.reshape(3, 3)) @ T
+
+    def offsets(theta):  # the primary-grid offset at which H maps to where homography(theta) maps
+        return np.einsum("nij,nj->ni", Jinv, _distort_px(cam1, _apply_h(homography(theta), u)) - base)
+
+    theta = np.zeros(8)
+    w = np.ones(len(P))
+    h = 1e-6
+    for _ in range(6):
+        g = offsets(theta)
+        G = np.stack([(offsets(theta + h * np.eye(8)[k]) - g) / h for k in range(8)], axis=2)  # (N, 2, 8)
+        r = f - g
+        WA = w[:, None, None] * A
+        N = np.einsum("nik,nij,njl->kl", G, WA, G)
+        b = np.einsum("nik,nij,nj->k", G, WA, r)
+        theta = theta + np.linalg.lstsq(N, b, rcond=None)[0]
+        res = f - offsets(theta)
+        m = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", res, A, res), 0) / lmax)  # px along the strong direction
+        w = 1 / np.maximum(m, 1)
+    Hn = homography(theta)
+    shift = np.linalg.norm(offsets(theta), axis=1)
+    return Hn / Hn[2, 2], {"pixels": int(len(P)), "applied": True, "inliers": int((m <= 1).sum()),
+                           "median_inlier_residual_px": float(np.median(m[m <= 1])) if (m <= 1).any() else None,
+                           "median_shift_px": float(np.median(shift))}
+
+
+# --- the two views ------------------------------------------------------------------------------------------
+
+def _roi(cam0, rig, reach: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) exclusive, in the primary photo: where the dense step looks. The reference crops to the
+    sample's texture area plus 25 px (§6.1 step 4), known from its mask; we use what holds any sample: the
+    holder frame's window on the sample plane, less the frame's height (its inner walls hide up to that much
+    of the plane from a camera at 45 deg), projected, less `reach` px (the descriptors' and patches' reach), so
+    that no cost compares the frame, 1.5 mm above the sample plane, with the plane. Without a frame: the
+    whole photo less `reach`."""
+    x0, y0, x1, y1 = 0, 0, cam0.width, cam0.height
+    if rig.frame is not None:
+        sp = rig.sample
+        o, xa, ya = (np.asarray(v, float) for v in (sp.origin, sp.x_axis, sp.y_axis))
+        h = rig.frame.inner_size / 2 - rig.frame.height
+        uv, _ = cam0.project(np.array([o + a * xa + b * ya for a in (-h, h) for b in (-h, h)]))
+        x0, y0 = np.ceil(uv.min(0)).astype(int)
+        x1, y1 = np.floor(uv.max(0)).astype(int) + 1
+    x0, y0 = max(x0, 0) + reach, max(y0, 0) + reach
+    x1, y1 = min(x1, cam0.width) - reach, min(y1, cam0.height) - reach
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        raise AlignmentError(f"dense: the region to match ({x0}..{x1} x {y0}..{y1} px) is too small; the photo is "
+                             "too small for the descriptors (cell_size, patch, max_offset)")
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+def align_views(primary: np.ndarray, secondary: np.ndarray, rig, config: AlignConfig = AlignConfig(),
+                primary_camera: str = "primary", secondary_camera: str = "secondary") -> Alignment:
+    """Align the secondary photo to the primary (module docstring). Both are linear HDR (H, W, 3) or (H, W)
+    photos of the same scene, normally the uniform-light pair (k = 129) of a capture."""
+    cfg = config
+    t_start = time.perf_counter()
+    cam0, cam1 = rig.camera(primary_camera), rig.camera(secondary_camera)
+    im0 = _check_image("primary", primary, cam0)
+    im1 = _check_image("secondary", secondary, cam1)
+    scale = cam0.width / REFERENCE_WIDTH
+    t0, t1 = tone_map(im0), tone_map(im1)
+
+    H, coarse_info = _coarse(t0.mean(2), t1.mean(2), cam0, cam1, rig, cfg, scale)
+    if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
+        raise AlignmentError(f"{cfg.coarse}: degenerate homography {H.tolist()}")
+    info = {"method": cfg.coarse, **coarse_info, "scale": scale, "coarse_homography": H.tolist(),
+            "coarse_s": time.perf_counter() - t_start}
+    H0, W0 = cam0.height, cam0.width
+    yy, xx = np.mgrid[0:H0, 0:W0]
+    grid = np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64)
+    if cfg.dense:
+        H, corrections, dense_info = _dense(t0, t1, cam0, cam1, H, rig, cfg, scale)
+        info.update(dense_info)
+        grid = grid + corrections.reshape(-1, 2)
+    result = _coarse_map(cam0, cam1, H, grid).reshape(H0, W0, 2)
+    out = ~((result[..., 0] >= 0) & (result[..., 0] <= cam1.width - 1) & (result[..., 1] >= 0)
+            & (result[..., 1] <= cam1.height - 1))
+    result[out] = np.nan
+    info["seconds"] = time.perf_counter() - t_start
+    return Alignment(result.astype(np.float32), H, info)
+
+
+def _dense(t0, t1, cam0, cam1, H, rig, cfg, scale):
+    """The dense step. Returns the homography the map falls back on (H, refined when cfg.refine), the per-pixel
+    corrections (H0, W0, 2) in primary px (the map is H applied at pixel + correction; 0 where the gate keeps
+    the homography), and info."""
+    t = time.perf_counter()
+    p = {"cell": cfg.cell_size if cfg.cell_size is not None else 20.0 * scale,
+         "R": max(1, int(round(cfg.max_offset * scale))),
+         "jumps": _scaled(cfg.jump_radii, scale), "searches": _scaled(cfg.search_radii, scale),
+         "init": max(1, int(round(cfg.init_noise * scale)))}
+    # how far from a pixel its cost looks: offset window, patch, descriptor cells (2 cells + the tent) and Sobel
+    pad = p["R"] + cfg.patch // 2 + int(np.ceil(3 * p["cell"])) + 1
+    x0, y0, x1, y1 = _roi(cam0, rig, pad)
+    box = (max(x0 - pad, 0), max(y0 - pad, 0), min(x1 + pad, cam0.width), min(y1 + pad, cam0.height))
+    bx0, by0, bx1, by1 = box
+    roi = np.zeros((by1 - by0, bx1 - bx0), bool)
+    roi[y0 - by0:y1 - by0, x0 - bx0:x1 - bx0] = True
+    gen = torch.Generator().manual_seed(int(cfg.seed))
+    passes = []
+    field = _match(t0, t1, cam0, cam1, H, box, cfg, p, gen)
+    if cfg.refine:
+        H, refit = _refit(H, field, roi, box, cam0, cam1, cfg)
+        passes.append(refit)
+        field = _match(t0, t1, cam0, cam1, H, box, cfg, p, gen)
+    accept = roi & field["known"] & (field["lam_min"] > cfg.gate * np.maximum(field["cmin"], 0))
+    corrections = np.zeros((cam0.height, cam0.width, 2))
+    corrections[by0:by1, bx0:bx1][accept] = field["flow"][accept]
+    info = {"dense": {"cell_px": p["cell"], "max_offset_px": p["R"], "jumps": list(p["jumps"]),
+                      "search_radii": list(p["searches"]), "init_noise_px": p["init"], "roi_xyxy": [x0, y0, x1, y1],
+                      "cost": field["cost"], "refit": passes, "accepted_fraction": float(accept.sum() / roi.sum()),
+                      "median_accepted_offset_px": float(np.median(np.linalg.norm(field["flow"][accept], axis=1)))
+                      if accept.any() else 0.0},
+            "dense_s": time.perf_counter() - t}
+    return H, corrections, info
+
+
+def _match(t0, t1, cam0, cam1, H, box, cfg, p, gen) -> dict:
+    """Dense SIFT + PatchMatch inside `box` of the primary photo against the secondary photo warped by H (its
+    offset 0), with the quadratic fit of the cost around the best offset. Arrays over the box: flow (h, w, 2)
+    the sub-pixel offset in primary px, hess (h, w, 2, 2) the fitted cost Hessian, lam_min (smallest
+    eigenvalue, NaN at the offset window's edge), cmin (fitted minimum cost), known (target had pixels)."""
+    bx0, by0, bx1, by1 = box
+    yy, xx = np.mgrid[by0:by1, bx0:bx1]
+    m = _coarse_map(cam0, cam1, H, np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64))
+    warped = bilinear(t1, m[:, 0], m[:, 1]).reshape(by1 - by0, bx1 - bx0, -1)
+    known = np.isfinite(warped).all(axis=2)
+    warped = np.where(known[..., None], warped, 0.0)
+    dev = torch.device(cfg.device)
+    src = torch.from_numpy(np.ascontiguousarray(t0[by0:by1, bx0:bx1].transpose(2, 0, 1))).float().to(dev)
+    tgt = torch.from_numpy(np.ascontiguousarray(warped.transpose(2, 0, 1))).float().to(dev)
+    d_src = dense_sift(src, p["cell"], cfg.orientation_sharpness, cfg.norm_floor)
+    d_tgt = dense_sift(tgt, p["cell"], cfg.orientation_sharpness, cfg.norm_floor)
+    cost = _PatchCost(d_src, d_tgt, cfg.patch, p["R"], cfg.volume_budget_mb * 2 ** 20)
+    off, _ = patchmatch(cost, init_noise=p["init"], jumps=p["jumps"], searches=p["searches"],
+                        iterations=cfg.iterations, generator=gen)
+    step, cmin, hess, lam_min = _subpixel(cost, off)
+    return {"flow": (off.to(step.dtype) + step).permute(1, 2, 0).cpu().numpy().astype(np.float64),
+            "hess": hess.cpu().numpy().astype(np.float64), "cmin": cmin.cpu().numpy().astype(np.float64),
+            "lam_min": lam_min.cpu().numpy().astype(np.float64), "known": known,
+            "cost": "volume" if cost.volume is not None else "direct"}
+
+
+def warp_to_primary(image_secondary: np.ndarray, alignment: Alignment) -> np.ndarray:
+    """A secondary photo (H1, W1, C) or (H1, W1) resampled into the primary's pixel grid (H0, W0, C): bilinear
+    at alignment.map, NaN where the map is NaN or leaves the secondary photo."""
+    img = np.asarray(image_secondary)
+    squeeze = img.ndim == 2
+    if squeeze:
+        img = img[..., None]
+    if img.ndim != 3:
+        raise AlignmentError(f"image_secondary must be (H, W) or (H, W, C), got shape {np.shape(image_secondary)}")
+    m = alignment.map
+    out = bilinear(img.astype(np.float64), m[..., 0], m[..., 1]).astype(np.float32)
+    return out[..., 0] if squeeze else out
+
+
+def alignment_error(alignment: Alignment, pixel_texel_primary: np.ndarray, pixel_texel_secondary: np.ndarray,
+                    mask: np.ndarray | None = None) -> dict:
+    """Error of the map against the twin's ground-truth sidecars (pixel -> true texel (row, col), NaN off the
+    sample), in SECONDARY pixels.
+
+    For a primary pixel p with true texel tau0(p), the pixel of the secondary that truly sees that texel is
+    q* with tau1(q*) = tau0(p) (tau1 bilinear on the secondary sidecar). Starting from the aligned pixel
+    q = map(p), Newton steps q <- q - J(q)^-1 (tau1(q) - tau0(p)) find q*, J the Jacobian of tau1 (central
+    differences of +-1 px); the error is |map(p) - q*|. Its first step is the linearised |J^-1 (tau1(q) -
+    tau0(p))|; the further steps make it exact where the error is not small. Scored pixels: primary pixels
+    whose 3 x 3 neighbourhood is on the sample (the sidecar of an edge pixel averages only the sub-rays that
+    hit the sample, so it is biased), with `mask` if given, whose map is finite and lands on the secondary's
+    sample; `off_sample` counts those whose aligned pixel does not."""
+    tp = np.asarray(pixel_texel_primary, np.float64)
+    ts = np.asarray(pixel_texel_secondary, np.float64)
+    H0, W0 = alignment.map.shape[:2]
+    if tp.shape != (H0, W0, 2):
+        raise AlignmentError(f"pixel_texel_primary must be {(H0, W0, 2)} like the map, got {tp.shape}")
+    if ts.ndim != 3 or ts.shape[2] != 2:
+        raise AlignmentError(f"pixel_texel_secondary must be (H1, W1, 2), got {ts.shape}")
+    on = np.isfinite(tp).all(axis=2)
+    interior = on.copy()
+    interior[1:-1, 1:-1] = np.lib.stride_tricks.sliding_window_view(on, (3, 3)).all(axis=(2, 3))
+    interior[[0, -1], :] = False
+    interior[:, [0, -1]] = False
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != (H0, W0):
+            raise AlignmentError(f"mask must be {(H0, W0)}, got {mask.shape}")
+        interior &= mask
+    m = alignment.map.astype(np.float64)
+    sel = interior & np.isfinite(m).all(axis=2)
+    ys, xs = np.nonzero(sel)
+    q0 = m[ys, xs]
+    target = tp[ys, xs]
+
+    def tau(q):
+        return bilinear(ts, q[:, 0], q[:, 1])
+
+    q = q0.copy()
+    ok = np.isfinite(tau(q)).all(axis=1)
+    n_off = int((~ok).sum())
+    q, q0, target = q[ok], q0[ok], target[ok]
+    for _ in range(6):
+        e = tau(q) - target
+        jx = (tau(q + [1.0, 0.0]) - tau(q - [1.0, 0.0])) / 2  # d tau / dx: (d row, d col)
+        jy = (tau(q + [0.0, 1.0]) - tau(q - [0.0, 1.0])) / 2
+        J = np.stack([jx, jy], axis=2)  # (N, 2 tau, 2 px)
+        good = np.isfinite(J).all(axis=(1, 2)) & np.isfinite(e).all(axis=1)
+        good[good] = np.abs(np.linalg.det(J[good])) > 1e-9
+        step = np.zeros_like(q)
+        step[good] = np.linalg.solve(J[good], e[good][..., None])[..., 0]
+        q = np.where(good[:, None], q - step, np.nan)
+    err = np.linalg.norm(q0 - q, axis=1)
+    err = err[np.isfinite(err)]
+    if err.size == 0:
+        raise AlignmentError("alignment_error: no primary pixel could be scored (map and sidecars do not overlap "
+                             "on the sample)")
+    return {"median_px": float(np.median(err)), "mean_px": float(err.mean()), "p90_px": float(np.percentile(err, 90)),
+            "count": int(err.size), "off_sample": n_off}

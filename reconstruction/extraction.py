@@ -1,0 +1,271 @@
+"""Measurement extraction: from a capture folder's HDR photos to per-texel measurements (reference §6.1, §6.3).
+
+    grid = texture_grid(rig, capture, resolution=64)        # the texture grid over the sample
+    meas = extract(capture, rig, grid, alignment)           # per texel: learned (+,-) differences of both
+                                                            # views, line measurements, transparency
+
+The texture grid (reference §6.1 step 3): a square grid of texels centred on the sample plane's origin, in the
+SVBRDF maps' convention (twin.samples: row i along +y, column j along +x, texel centres at
+-s/2 + (j + 0.5) s/R), so that the reconstruction exports straight to OpenSVBRDF maps. Its side: the sample's
+extent found in the bottom-lit photos (the sample blocks the light that the empty board lets through:
+photo 128 against the empty-board photo 130), as the largest centred square inside that region, shrunk by
+6.5% of the extent on every side as the reference does (so no texel straddles the sample's edge).
+
+Per photo and camera (reference §6.3, with the differences stated):
+  1. flat field (calibration.flat_field) and colour matrix (calibration.colour_matrix): camera RGB -> the
+     LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
+  2. an anti-aliasing Gaussian matched to the texel footprint, the reference's odd kernel width
+     k = 2 ceil(d/2 + 1) - 1 with d the largest pixel step between adjacent texels (only when d > 1.5 px:
+     a texel smaller than ~1.5 px needs none);
+  3. the value at the texel centre's projection, BILINEAR (the reference truncates to the pixel, a
+     half-pixel bias), through the camera's own distortion (no separate undistortion pass: the projection
+     already lands on the raw pixel);
+  4. the secondary view through the two-view alignment (reconstruction.alignment): a texel's secondary
+     pixel is the alignment map at its primary pixel (the reference's homography + PatchMatch warp);
+  5. units: LED-RGB radiance times reconstruction.data.LUMITEXEL_SCALE = "network units", those of the
+     lumitexels the network was trained on; the learned measurements are the grey (mean RGB) differences
+     photo(+) - photo(-) of each pair, which equal sum_l q_kl m_l for the network's signed 8-bit
+     patterns q (reconstruction.network.PatternLayer) exactly when the photos are noise-free.
+Transparency (reference §6.3): clip(mean_rgb(bottom / empty), 0, 1) at the texel.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+# reference §6.1: the texture grid is the sample's bounding box shrunk by 6.5% of its extent on every side
+GRID_SHRINK = 0.065
+# a pixel is "under the sample" when the sample lets through less than this fraction of the empty board's
+# bottom light (the built-in samples are opaque, beta = 0; a sample more translucent than this needs an
+# explicit size)
+SAMPLE_RATIO = 0.5
+# pixels whose empty-board bottom light is below this fraction of the brightest are the holder frame or
+# outside the board: not evidence either way
+LIT_FRACTION = 0.05
+MIN_SAMPLE_PIXELS = 64
+
+LEARNED = range(0, 64)       # reference §6.3 photo indices (twin.capture plan)
+LINES = range(64, 128)
+BOTTOM, UNIFORM, EMPTY_BOTTOM = 128, 129, 130
+
+
+class ExtractionError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class TextureGrid:
+    """A square grid of resolution x resolution texels, side size_mm, centred on the sample plane's origin."""
+
+    resolution: int
+    size_mm: float
+
+    def __post_init__(self):
+        if not isinstance(self.resolution, (int, np.integer)) or self.resolution < 2:
+            raise ExtractionError(f"grid resolution must be an integer >= 2, got {self.resolution!r}")
+        if not (math.isfinite(self.size_mm) and self.size_mm > 0):
+            raise ExtractionError(f"grid size must be a positive number of mm, got {self.size_mm!r}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.resolution), int(self.resolution))
+
+    @property
+    def texel_mm(self) -> float:
+        return self.size_mm / self.resolution
+
+    def positions(self, rig) -> np.ndarray:
+        """(R*R, 3) float64 world positions (mm) of the texel centres, row-major (i * R + j)."""
+        from twin.samples import grid_positions
+
+        return grid_positions(self.size_mm, self.shape, rig.sample).reshape(-1, 3)
+
+
+@dataclass
+class Measurements:
+    """Per texel (N = R*R, row-major) of a TextureGrid, in network units (module docstring)."""
+
+    grid: TextureGrid
+    learned: np.ndarray        # (N, 2, K) grey (+,-) differences, views [primary, secondary]
+    lines: np.ndarray          # (N, 64, 3) RGB line-light measurements, primary view
+    line_weights: np.ndarray   # (64, L_upper, 3) the line patterns' relative drive (levels / 255)
+    transparency: np.ndarray   # (N,) in [0, 1]
+    valid: np.ndarray          # (N,) bool: seen by both views, every value finite
+    pixel_primary: np.ndarray  # (N, 2) the texel centre's primary pixel (x, y)
+    pixel_secondary: np.ndarray  # (N, 2) its aligned secondary pixel (x, y), NaN where unknown
+
+    def save(self, path) -> None:
+        from twin.atomic import atomic_path
+
+        with atomic_path(Path(path), suffix=".npz") as tmp:
+            np.savez(tmp, learned=self.learned, lines=self.lines, line_weights=self.line_weights,
+                     transparency=self.transparency, valid=self.valid, pixel_primary=self.pixel_primary,
+                     pixel_secondary=self.pixel_secondary,
+                     grid=np.array([self.grid.resolution, self.grid.size_mm], np.float64))
+
+
+def read_manifest(capture) -> dict:
+    path = Path(capture) / "manifest.json"
+    if not path.is_file():
+        raise ExtractionError(f"{capture}: not a capture folder (no manifest.json)")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ExtractionError(f"{path}: unreadable manifest ({e})") from None
+
+
+def capture_patterns(capture, rig, names) -> np.ndarray:
+    """(len(names), L, 3) float32 relative drive of the named frames in the capture's own patterns.npz (what
+    the LEDs really showed), checked against the rig."""
+    from twin.patterns import PatternError, load_patterns
+
+    try:
+        pats = load_patterns(Path(capture) / "patterns.npz")
+        pats.check_rig(rig)
+    except (PatternError, OSError) as e:
+        raise ExtractionError(f"{capture}: patterns.npz: {e}") from None
+    index = {n: k for k, n in enumerate(pats.names)}
+    missing = [n for n in names if n not in index]
+    if missing:
+        raise ExtractionError(f"{capture}: patterns.npz lacks frames {missing[:3]}{'...' if len(missing) > 3 else ''}")
+    return pats.weights[[index[n] for n in names]].astype(np.float32)
+
+
+def read_photo(capture, index: int, camera_index: int) -> np.ndarray:
+    """(H, W, 3) float32 HDR photo k of camera c; a clear error when it is missing or not finite."""
+    from twin.exr import read_rgb_exr
+
+    path = Path(capture) / f"img{index:05d}_cam{camera_index:02d}.exr"
+    if not path.is_file():
+        raise ExtractionError(f"{capture}: photo {path.name} is missing (an incomplete capture? re-run "
+                              "`hemicube capture` on the folder to finish it)")
+    img = read_rgb_exr(path)
+    if not np.all(np.isfinite(img)):
+        raise ExtractionError(f"{path}: the photo holds NaN or Inf values")
+    return img
+
+
+def corrected(img: np.ndarray, camera) -> np.ndarray:
+    """Step 1: flat field and colour matrix, camera RGB -> LED-RGB radiance, clamped at >= 0 (reference §6.3
+    step 6: read noise makes dark pixels slightly negative; no light is)."""
+    from calibration.colour_matrix import apply_colour_matrix, colour_matrix
+    from calibration.flat_field import flat_field
+
+    if img.shape != (camera.height, camera.width, 3):
+        raise ExtractionError(f"photo of camera {camera.name!r} is {img.shape}, the rig says "
+                              f"({camera.height}, {camera.width}, 3)")
+    return np.maximum(apply_colour_matrix(img * flat_field(camera)[..., None], colour_matrix(camera)), 0.0)
+
+
+def _plane_hits(camera, uv: np.ndarray, plane) -> np.ndarray:
+    c = camera.centre
+    n, o = np.asarray(plane.normal, float), np.asarray(plane.origin, float)
+    d = camera.pixel_rays(uv)
+    return c + d * (((o - c) @ n) / (d @ n))[:, None]
+
+
+def detect_sample_size(capture, rig) -> float:
+    """Side (mm) of the largest square centred on the plane origin inside the region where the sample blocks
+    the bottom light (photo 128 against 130, primary camera), before the reference's 6.5% shrink."""
+    cam = rig.camera(next(iter(rig.cameras)))
+    lit = read_photo(capture, EMPTY_BOTTOM, 0).mean(axis=2)
+    sample = read_photo(capture, BOTTOM, 0).mean(axis=2)
+    ok = lit > LIT_FRACTION * lit.max()
+    under = ok & (sample < SAMPLE_RATIO * lit)
+    if under.sum() < MIN_SAMPLE_PIXELS:
+        raise ExtractionError(f"{capture}: no opaque sample found in the bottom-lit photos ({int(under.sum())} "
+                              "pixels block the light); give the sample size explicitly (--size-mm)")
+    ys, xs = np.nonzero(under)
+    p = _plane_hits(cam, np.stack([xs, ys], axis=1).astype(np.float64), rig.sample) - np.asarray(rig.sample.origin)
+    u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
+    lo_u, hi_u = np.percentile(u, [0.5, 99.5])  # robust to single noisy pixels
+    lo_v, hi_v = np.percentile(v, [0.5, 99.5])
+    half = min(-lo_u, hi_u, -lo_v, hi_v)
+    if half <= 0:
+        raise ExtractionError(f"{capture}: the sample region does not contain the plane origin; give the sample "
+                              "size explicitly (--size-mm)")
+    return 2.0 * half
+
+
+def texture_grid(capture, rig, resolution: int, size_mm: float | None = None) -> TextureGrid:
+    """The reconstruction's texture grid: `size_mm` when given, else the detected sample square shrunk by
+    GRID_SHRINK of its extent on every side (reference §6.1)."""
+    read_manifest(capture)
+    if size_mm is None:
+        size_mm = detect_sample_size(capture, rig) * (1.0 - 2.0 * GRID_SHRINK)
+    return TextureGrid(int(resolution), float(size_mm))
+
+
+def _kernel_width(uv: np.ndarray, shape) -> int:
+    """Reference §6.1 step 4: odd width 2 ceil(d/2 + 1) - 1 from the largest pixel step d between adjacent
+    texels; 0 (no blur) when texels are under 1.5 px."""
+    g = uv.reshape(*shape, 2)
+    steps = [np.linalg.norm(np.diff(g, axis=a), axis=-1) for a in (0, 1)]
+    d = max(float(np.nanmax(s)) if np.isfinite(s).any() else 0.0 for s in steps)
+    return 0 if d <= 1.5 else 2 * math.ceil(d / 2 + 1) - 1
+
+
+def _sample(img: np.ndarray, uv: np.ndarray, ksize: int) -> np.ndarray:
+    """Steps 2-3: (N, C) bilinear values of img (H, W, C) at uv (N, 2), NaN outside the image."""
+    import cv2
+
+    if ksize:
+        img = cv2.GaussianBlur(img, (ksize, ksize), 0, borderType=cv2.BORDER_REFLECT)
+    m = np.ascontiguousarray(uv.astype(np.float32).reshape(-1, 1, 2))
+    bad = ~np.isfinite(m).all(axis=2)
+    m[bad] = -10.0  # off the image: the constant border below makes it NaN
+    out = cv2.remap(img.astype(np.float32), m, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=(np.nan,) * 4)
+    return out.reshape(len(uv), -1)
+
+
+def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
+    """Step 4: each texel's secondary pixel, the alignment map (H0, W0, 2) sampled bilinearly at its primary
+    pixel (NaN where the map is unknown)."""
+    return _sample(alignment.map, uv_primary, 0)
+
+
+def extract(capture, rig, grid: TextureGrid, alignment, *, progress: bool = False) -> Measurements:
+    """Per-texel measurements of a capture folder (module docstring)."""
+    from .data import LUMITEXEL_SCALE
+
+    doc = read_manifest(capture)
+    if doc.get("rig_digest") not in (None, rig.digest()):
+        raise ExtractionError(f"{capture} was captured with another rig (digest {doc.get('rig_digest')}) than "
+                              f"{rig.name!r} ({rig.digest()})")
+    cams = [rig.camera(c) for c in rig.cameras]
+    if len(cams) != 2:
+        raise ExtractionError(f"the pipeline needs a two-camera rig, {rig.name!r} has {len(cams)}")
+    pos = grid.positions(rig)
+    uv0, _ = cams[0].project(pos)
+    uv1 = secondary_pixels(uv0, alignment)
+    k0, k1 = _kernel_width(uv0, grid.shape), _kernel_width(uv1, grid.shape)
+    scale = np.float32(LUMITEXEL_SCALE)
+
+    def photo(k, c):
+        return corrected(read_photo(capture, k, c), cams[c])
+
+    from tqdm import tqdm
+
+    n = len(pos)
+    learned = np.empty((n, 2, len(LEARNED) // 2), np.float32)
+    for c, (uv, ks) in enumerate(((uv0, k0), (uv1, k1))):
+        for p in tqdm(range(len(LEARNED) // 2), desc=f"extract learned cam{c}", disable=not progress):
+            diff = photo(2 * p, c) - photo(2 * p + 1, c)
+            learned[:, c, p] = _sample(diff, uv, ks).mean(axis=1) * scale
+    lines = np.empty((n, len(LINES), 3), np.float32)
+    for j, k in enumerate(tqdm(LINES, desc="extract lines", disable=not progress)):
+        lines[:, j] = _sample(photo(k, 0), uv0, k0) * scale
+    bottom = _sample(photo(BOTTOM, 0), uv0, k0).mean(axis=1)
+    empty = _sample(photo(EMPTY_BOTTOM, 0), uv0, k0).mean(axis=1)
+    transparency = np.clip(bottom / (empty + 1e-6), 0.0, 1.0).astype(np.float32)  # reference §6.3
+    valid = (np.isfinite(learned).all(axis=(1, 2)) & np.isfinite(lines).all(axis=(1, 2))
+             & np.isfinite(transparency))
+    upper = np.flatnonzero(~np.asarray(rig.is_bottom))
+    weights = capture_patterns(capture, rig, [f"line_{j:02d}" for j in range(len(LINES))])[:, upper, :]
+    return Measurements(grid, learned, lines, weights, transparency, valid, uv0.astype(np.float32),
+                        uv1.astype(np.float32))

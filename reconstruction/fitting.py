@@ -1,0 +1,655 @@
+"""GGX and local-frame fitting per texel (paper §7.2, reference §5): the decoded RGB lumitexels (and the
+line-light measurements) -> anisotropic GGX parameters and a world-frame shading frame -> OpenSVBRDF maps.
+
+    result = fit_ggx(rig, positions, lumitexels, lines=..., line_weights=..., config=FitConfig())
+    maps = to_maps(result, grid_shape, size_mm, transparency, name)      # twin.samples.SVBRDFMaps
+
+Physics. The prediction of a texel is the twin's own forward model, not a re-implementation of GGX:
+    m_hat[p, l, c] = twin.lumitexels(rig, pos, n, t, rho_d, rho_s, alpha_x, alpha_y, convention="physical",
+                                     camera, transparency=0, visibility=True)[p, upper[l], c] * LUMITEXEL_SCALE
+i.e. the "network units" of reconstruction.data (what reconstruction.data.synthesize renders in grey);
+with torch tensors in, twin.lumitexels is differentiable through its Warp tape. The line term predicts
+M_hat[p, k, c] = sum_l W[k, l, c] m_hat[p, l, c] (reference §2.4) for the upper-LED line weights W.
+
+Loss per texel (reference §5 adds lambda_m times the line term to the lumitexel term):
+    "log1p"  mean_{l,c} (log(1 + m_hat) - log(1 + m))^2 + lambda_lines mean_{k,c} (log(1 + M_hat) - log(1 + M))^2
+             (the network's Eq. 3 form: network units are scaled so that log(1 + m) compresses the range)
+    "mse"    mean_{l,c} ((m_hat - m) / s_m)^2 + lambda_lines mean_{k,c} ((M_hat - M) / s_M)^2, s = the mean
+             target over all texels. The reference's MSE compares m_hat with s m for a frozen "albedo
+             scalar" s and divides the exported rho by s again; m_hat is linear in rho, so that scalar only
+             rescales the loss. Dividing by the target's mean does the same and keeps lambda dimensionless.
+
+Albedos in closed form. Eq. 1 is linear in the albedos: m_hat[l, c] = rho_d[c] D[l, c] + rho_s[c] S[l, c]
+with D = I_c Psi V (wi.n) / (pi r^2) and S = I_c Psi V fs (wi.n) / r^2 (twin.lumitexel's docstring; Schlick's
+F0 is grey, so fs is one number per LED). ONE launch of the forward model with rho_d = (1, 0, 0) and
+rho_s = (0, 1, 0) gives D in channel 0 and S in channel 1; the other channels follow from the LEDs' RGB
+intensities (D[l, c] = D[l, 0] I[l, c] / I[l, 0]). For given geometry, rho_d and rho_s then minimise the
+loss's Gauss-Newton quadratic at the target (weights f'(m)^2; exact for "mse") on the box [0, 1] x
+[0, rho_s_max], per texel and channel, lumitexel and line terms together (`_albedos`).
+
+Parameterisation of the geometry: 5 unconstrained numbers per texel, [u, v, theta, a_x, a_y]:
+  * n = normalize(N + u X + v Y) for the sample plane's normal N and axes X, Y (twin.samples): n.N > 0 for
+    every finite (u, v), smooth, no seam. The reference maps 2 sigmoids to a hemi-octahedral normal around
+    the VIEW direction (§2.3), which gives no world meaning to its parameters and lets n_z < 0 under an
+    oblique camera, against the map contract (n_z > 0); this is a justified alternative, not a copy.
+  * t = cos(theta) t0 + sin(theta) n x t0, with t0 the plane's X carried along by the smallest rotation
+    that takes N to n (defined on the whole open hemisphere): theta is world-meaningful (0 means "along
+    +x" for a flat texel) and periodic, so it needs no sigmoid. The reference's theta = 2 pi sigmoid
+    relative to a view-dependent axis (§2.3) has neither property.
+  * alpha = exp(log lo + (log hi - log lo) sigmoid(a)) on FitConfig.alpha_range: the reference's range
+    (0.006 + 0.497 sigmoid), log-spaced so that Adam's steps are relative changes of alpha, as the metric
+    |log alpha| error is.
+The neural method's heads add 6 numbers, rho_d = sigmoid(d) and rho_s = rho_s_max sigmoid(s) (reference §5).
+
+Methods (FITTING_METHODS, dispatched by `fit_method`, one function each):
+  * "direct" (ours): Adam on the 5 geometry numbers per texel, the albedos in closed form at every step
+    (variable projection: the 6 linear unknowns never slow the descent). Texels are independent, so
+    `batch` splits them into chunks fitted one after the other (the SUM of per-texel losses is minimised:
+    each texel's gradient is its own, and a chunk is the same problem as the whole, up to float rounding).
+  * "neural" (reference §5): a learnable feature texture (channels, R, C), Xavier-uniform, sampled with
+    grid_sample (bilinear, align_corners=True) at the texel centres, feeds 5 MLP heads (n 2, theta 1,
+    alpha 2, rho_d 3, rho_s 3), each channels -> hidden -> hidden -> hidden -> k with LeakyReLU(0.2), whose
+    outputs are the 11 raw numbers above; Adam (lr 1e-3) on random texel batches from a seeded generator.
+
+Initialisation (both methods; ours): candidate geometries (the plane normal, and for texels whose specular
+peak points elsewhere the half vector of that peak; times a few isotropic and anisotropic roughness pairs
+and tangent angles), each with its closed-form albedos; each texel starts from its lowest-loss candidate.
+The neural method first regresses its heads onto these numbers (warm start).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+import torch
+from torch import nn
+
+import twin
+from twin.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy
+
+from .data import LUMITEXEL_SCALE
+
+__all__ = ["FitConfig", "FitResult", "fit_ggx", "fit_method", "to_maps", "FITTING_METHODS", "METHODS", "LOSSES"]
+
+LOSSES = ("log1p", "mse")
+METHODS = ("direct", "neural")  # FITTING_METHODS below: one function each
+GEOMETRY_SIZE = 5  # [u, v, theta, a_x, a_y]
+HEADS = (("normal", 2), ("theta", 1), ("alpha", 2), ("rho_d", 3), ("rho_s", 3))  # reference §5's 5 heads
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of the GGX fit. Sources: reference §5 (the released fitting code) or ours (measured on the
+    mini rig: the comparison in the issue #6 note)."""
+
+    method: str = "direct"  # ours, measured: "direct" beats "neural" at equal CPU time
+    # Adam steps. direct (ours): full-batch steps, ~0.45 s each for 2,304 texels x 396 LEDs on one core;
+    # neural: steps of `batch` texels (the reference runs 120,000 steps of 128 texels on a GPU).
+    iterations: int | None = None  # None: 60 (direct), 600 (neural)
+    lr: float | None = None  # None: 0.02 (direct, ours), 1e-3 (neural, reference §5)
+    batch: int | None = None  # direct: texels per chunk (None: all); neural: texels per step (None: 256)
+    alpha_range: tuple = (0.006, 0.503)  # reference §5: 0.006 + 0.497 sigmoid
+    rho_s_max: float = 10.0  # reference §5 ps_range (20 for paper, a map range twin.samples allows)
+    # weight of the line term (reference §5's lambda_m; ours, measured: 10). The reference's 0.01-0.1 multiply
+    # UNnormalised sums, whose squares exceed the lumitexels' by (mean M / mean m)^2; here both are normalised.
+    lambda_lines: float = 10.0
+    loss: str = "log1p"  # ours, measured: see the issue #6 note
+    seed: int = 0
+    device: str = "cpu"
+    camera: str = "primary"  # the view the lumitexels were decoded for (reference §5: primary only)
+    # initial candidates (ours): roughness levels (log-spaced inside the reference range), tangent angles
+    init_alphas: tuple = (0.02, 0.08, 0.3)
+    init_thetas: int = 3
+    # neural method (reference §5: 24 channels, 128 hidden; scaled down for a CPU)
+    features: int = 16  # the paper's "16 neural parameters" (reference §5; the code uses 24)
+    hidden: int = 64
+    warm_start_steps: int = 300  # regression of the heads onto the initial numbers (ours)
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"FitConfig.method must be one of {METHODS}, got {self.method!r}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"FitConfig.loss must be one of {LOSSES}, got {self.loss!r}")
+        for k, least in (("iterations", 0), ("batch", 1)):  # 0 iterations: the initialisation alone
+            v = getattr(self, k)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < least):
+                raise ValueError(f"FitConfig.{k} must be an integer >= {least} or None, got {v!r}")
+        if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"FitConfig.lr must be positive, got {self.lr!r}")
+        lo, hi = (float(a) for a in self.alpha_range)
+        if not (ALPHA_RANGE[0] <= lo < hi <= ALPHA_RANGE[1]):
+            raise ValueError(f"FitConfig.alpha_range must satisfy {ALPHA_RANGE[0]} <= lo < hi <= {ALPHA_RANGE[1]} "
+                             f"(the map range), got {self.alpha_range}")
+        object.__setattr__(self, "alpha_range", (lo, hi))
+        if not (0 < self.rho_s_max <= RHO_S_RANGE[1]):
+            raise ValueError(f"FitConfig.rho_s_max must lie in (0, {RHO_S_RANGE[1]}], got {self.rho_s_max}")
+        if not (math.isfinite(self.lambda_lines) and self.lambda_lines >= 0):
+            raise ValueError(f"FitConfig.lambda_lines must be >= 0, got {self.lambda_lines}")
+        if not self.init_alphas or not all(lo < a < hi for a in self.init_alphas):
+            raise ValueError(f"FitConfig.init_alphas must be non-empty and inside alpha_range {self.alpha_range}")
+        for k in ("init_thetas", "features", "hidden"):
+            if getattr(self, k) < 1:
+                raise ValueError(f"FitConfig.{k} must be >= 1, got {getattr(self, k)}")
+        if self.warm_start_steps < 0:
+            raise ValueError(f"FitConfig.warm_start_steps must be >= 0, got {self.warm_start_steps}")
+
+    @property
+    def steps(self) -> int:
+        return self.iterations if self.iterations is not None else {"direct": 60, "neural": 600}[self.method]
+
+    @property
+    def learning_rate(self) -> float:
+        return self.lr if self.lr is not None else {"direct": 0.02, "neural": 1e-3}[self.method]
+
+
+@dataclass
+class FitResult:
+    """Per-texel GGX parameters (numpy float32, world frame, the twin's physical units as in SVBRDFMaps):
+    normal (N, 3), tangent (N, 3) (the alpha_x axis), alpha_x (N,), alpha_y (N,), rho_d (N, 3), rho_s (N, 3);
+    history: the mean per-texel loss at each step; seconds: wall time of the whole fit; info: method, loss,
+    config, init_seconds, seconds_per_iteration, texel_loss (N,) at the end."""
+
+    normal: np.ndarray
+    tangent: np.ndarray
+    alpha_x: np.ndarray
+    alpha_y: np.ndarray
+    rho_d: np.ndarray
+    rho_s: np.ndarray
+    history: list = field(default_factory=list)
+    seconds: float = 0.0
+    info: dict = field(default_factory=dict)
+
+
+# --- the problem: checked inputs on a device -------------------------------------------------------------
+@dataclass
+class _Problem:
+    rig: object
+    config: FitConfig
+    pos: torch.Tensor  # (n, 3) float32, mm
+    target: torch.Tensor  # (n, L, 3) the lumitexels m
+    target_f: torch.Tensor  # (n, L, 3) f(m) (the loss compares f(m_hat) with it; `_f`)
+    weight: torch.Tensor  # (n, L, 3) the albedo quadratic's weights f'(m)^2 / (3 L)
+    lines: torch.Tensor | None  # (3, n, K) the line measurements M, channel-major (for matmul)
+    lines_f: torch.Tensor | None  # (3, n, K) f(M)
+    lines_weight: torch.Tensor | None  # (3, n, K) lambda f'(M)^2 / (3 K)
+    W: torch.Tensor | None  # (3, L, K) upper-LED line weights, channel-major
+    upper: torch.Tensor  # (L,) int64: the upper LEDs' indices among the rig's
+    ratio: torch.Tensor  # (2, L, 3): I[l, c] / I[l, 0] and I[l, c] / I[l, 1] (module docstring)
+    frame: torch.Tensor  # (3, 3) rows N, X, Y of the sample plane
+    scale_m: float  # "mse": the targets' means (the albedo scalar's role)
+    scale_lines: float
+
+    @property
+    def n(self) -> int:
+        return self.pos.shape[0]
+
+    @property
+    def has_lines(self) -> bool:
+        return self.lines is not None and self.config.lambda_lines > 0
+
+    def part(self, idx: torch.Tensor) -> "_Problem":
+        """The same problem for the texels idx."""
+        lines = {k: None if getattr(self, k) is None else getattr(self, k)[:, idx]
+                 for k in ("lines", "lines_f", "lines_weight")}
+        return replace(self, pos=self.pos[idx], target=self.target[idx], target_f=self.target_f[idx],
+                       weight=self.weight[idx], **lines)
+
+
+def _f(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
+    """The loss's transform of lumitexels or measurements: log(1 + x) or x / scale (module docstring)."""
+    return torch.log1p(x) if loss == "log1p" else x / scale
+
+
+def _df2(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
+    """f'(x)^2: the Gauss-Newton weight of a residual f(x_hat) - f(x) linearised at the target x."""
+    return (1.0 + x).reciprocal().square() if loss == "log1p" else torch.full_like(x, scale ** -2)
+
+
+def _tensor(name: str, x, ndim: int, device: torch.device) -> torch.Tensor:
+    """x (numpy or torch) as a float32 tensor on `device` (no copy when it already is one), checked:
+    `ndim` dimensions, 3 last, finite."""
+    if torch.is_tensor(x):
+        if x.is_complex() or x.dtype == torch.bool:
+            raise ValueError(f"{name} must be a real numeric array, got dtype {x.dtype}")
+        t = x.detach().to(device=device, dtype=torch.float32)
+    else:
+        a = np.asarray(x)
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"{name} must be a real numeric array, got dtype {a.dtype}")
+        t = torch.as_tensor(a, dtype=torch.float32, device=device)
+    if t.ndim != ndim or t.shape[-1] != 3:
+        raise ValueError(f"{name} must have {ndim} dimensions with 3 last (RGB or xyz), got shape {tuple(t.shape)}")
+    bad = ~torch.isfinite(t)
+    if bad.any():
+        first = tuple(int(i) for i in torch.nonzero(bad)[0])
+        raise ValueError(f"{name} contains NaN or Inf (first at index {first})")
+    return t
+
+
+def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config: FitConfig) -> _Problem:
+    if config.camera not in rig.cameras:
+        raise ValueError(f"rig {rig.name!r} has no camera {config.camera!r} (it has {list(rig.cameras)})")
+    upper = np.flatnonzero(~np.asarray(rig.is_bottom))
+    L = upper.size
+    intensity = np.asarray(rig.leds.intensity, dtype=np.float64)[upper]
+    if np.any(intensity[:, :2] <= 0):
+        raise ValueError("every upper LED needs a red and a green intensity > 0: the closed-form albedos take "
+                         "the diffuse and specular responses from those channels (module docstring)")
+    dev = torch.device(config.device)
+    pos = _tensor("positions", positions, 2, dev)
+    m = _tensor("lumitexels", lumitexels, 3, dev)
+    n = pos.shape[0]
+    if n == 0:
+        raise ValueError("positions is empty: nothing to fit")
+    if tuple(m.shape) != (n, L, 3):
+        raise ValueError(f"lumitexels must have shape (N, L_upper, 3) = ({n}, {L}, 3) for rig {rig.name!r} "
+                         f"(upper LEDs only, network units), got {tuple(m.shape)}")
+    if (m < 0).any():
+        raise ValueError(f"lumitexels must be >= 0 (decoded lumitexels are clamped at 0), got min {float(m.min()):g}")
+    if (lines is None) != (line_weights is None):
+        raise ValueError("lines and line_weights go together: give both or neither")
+    if config.method == "neural":
+        if grid_shape is None:
+            raise ValueError("method 'neural' needs grid_shape (R, C): the feature texture covers the texel grid")
+        R, C = (int(v) for v in grid_shape)
+        if R * C != n:
+            raise ValueError(f"grid_shape {tuple(grid_shape)} has {R * C} texels but positions has {n} "
+                             "(texels in row-major order of the grid)")
+    loss = config.loss
+    M = M_f = M_w = W = None
+    scale_lines = 1.0
+    if lines is not None:
+        M = _tensor("lines", lines, 3, dev)
+        W = _tensor("line_weights", line_weights, 3, dev)
+        if tuple(W.shape[1:]) != (L, 3):
+            raise ValueError(f"line_weights must have shape (K, L_upper, 3) = (K, {L}, 3) (upper LEDs), "
+                             f"got {tuple(W.shape)}")
+        if tuple(M.shape) != (n, W.shape[0], 3):
+            raise ValueError(f"lines must have shape (N, K, 3) = ({n}, {W.shape[0]}, 3), got {tuple(M.shape)}")
+        if (M < 0).any() or (W < 0).any():
+            raise ValueError("lines and line_weights must be >= 0 (light measurements and LED drive levels)")
+        scale_lines = max(float(M.mean(dtype=torch.float64)), 1e-12)
+        M = M.permute(2, 0, 1).contiguous()
+        M_f = _f(M, loss, scale_lines)
+        M_w = _df2(M, loss, scale_lines) * (config.lambda_lines / (3 * W.shape[0]))
+        W = W.permute(2, 1, 0).contiguous()
+    scale_m = max(float(m.mean(dtype=torch.float64)), 1e-12)
+
+    def T(a):
+        return torch.as_tensor(a, dtype=torch.float32, device=dev)
+
+    s = rig.sample
+    return _Problem(rig, config, pos, m, _f(m, loss, scale_m), _df2(m, loss, scale_m) / (3 * L), M, M_f, M_w,
+                    W, torch.as_tensor(upper, dtype=torch.int64, device=dev),
+                    T(np.stack([intensity / intensity[:, :1], intensity / intensity[:, 1:2]])),
+                    T(np.stack([s.normal, s.x_axis, s.y_axis])), scale_m, scale_lines)
+
+
+# --- numbers <-> GGX parameters ------------------------------------------------------------------------
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+
+
+def _base_tangent(n: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+    """X rotated by the smallest rotation taking N to n (Rodrigues with k = N x n, c = N.n > 0)."""
+    N, X = frame[0].expand_as(n), frame[1].expand_as(n)
+    k = torch.linalg.cross(N, n, dim=-1)
+    c = (n * N).sum(-1, keepdim=True)
+    return X * c + torch.linalg.cross(k, X, dim=-1) + k * ((k * X).sum(-1, keepdim=True) / (1 + c))
+
+
+def _geometry(g: torch.Tensor, frame: torch.Tensor, config: FitConfig) -> dict:
+    """(n, 5) numbers [u, v, theta, a_x, a_y] -> normal, tangent (unit, world), alpha_x, alpha_y."""
+    N, X, Y = frame
+    n = _unit(N + g[:, 0:1] * X + g[:, 1:2] * Y)
+    t0 = _base_tangent(n, frame)
+    th = g[:, 2:3]
+    t = torch.cos(th) * t0 + torch.sin(th) * torch.linalg.cross(n, t0, dim=-1)
+    t = _unit(t - (t * n).sum(-1, keepdim=True) * n)
+    la, lb = (math.log(a) for a in config.alpha_range)
+    alpha = torch.exp(la + (lb - la) * torch.sigmoid(g[:, 3:5]))
+    return {"normal": n, "tangent": t, "alpha_x": alpha[:, 0], "alpha_y": alpha[:, 1]}
+
+
+def _albedo_numbers(raw: torch.Tensor, config: FitConfig) -> dict:
+    """The neural heads' 6 albedo numbers -> rho_d in [0, 1], rho_s in [0, rho_s_max] (reference §5)."""
+    return {"rho_d": torch.sigmoid(raw[:, 0:3]), "rho_s": config.rho_s_max * torch.sigmoid(raw[:, 3:6])}
+
+
+def _logit(p: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
+    p = p.clamp(eps, 1 - eps)
+    return torch.log(p) - torch.log1p(-p)
+
+
+def _encode_geometry(n, theta, alpha_x, alpha_y, frame, config: FitConfig) -> torch.Tensor:
+    """Inverse of _geometry for n with n.N > 0, theta from the base tangent, alpha inside alpha_range."""
+    N, X, Y = frame
+    c = (n * N).sum(-1)
+    la, lb = (math.log(a) for a in config.alpha_range)
+    return torch.stack([(n * X).sum(-1) / c, (n * Y).sum(-1) / c, theta,
+                        _logit((torch.log(alpha_x) - la) / (lb - la)), _logit((torch.log(alpha_y) - la) / (lb - la))],
+                       dim=1)
+
+
+# --- the forward model, the albedos, the loss -------------------------------------------------------------
+def _lumitexels(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Tensor) -> torch.Tensor:
+    """(n, L_upper, 3) network units: the twin's Warp forward model (differentiable)."""
+    c = prob.config
+    m = twin.lumitexels(prob.rig, prob.pos, geom["normal"], geom["tangent"], rho_d, rho_s, geom["alpha_x"],
+                        geom["alpha_y"], convention="physical", device=c.device, camera=c.camera,
+                        transparency=torch.zeros(prob.n, device=prob.pos.device), visibility=True)
+    return m.index_select(1, prob.upper) * LUMITEXEL_SCALE
+
+
+def _bases(prob: _Problem, geom: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """D, S (n, L, 3): the lumitexels of unit diffuse and unit specular albedo, from one launch (module
+    docstring): rho_d = (1, 0, 0), rho_s = (0, 1, 0); the other channels by the LEDs' intensity ratios."""
+    e = torch.eye(3, device=prob.pos.device)
+    m = _lumitexels(prob, geom, e[0].expand(prob.n, 3), e[1].expand(prob.n, 3))
+    return m[..., 0:1] * prob.ratio[0], m[..., 1:2] * prob.ratio[1]
+
+
+def _solve_box(dd, dm, ds, ss, sm, rho_s_max: float):
+    """argmin over a in [0, 1], b in [0, rho_s_max] of a^2 dd + 2ab ds + b^2 ss - 2a dm - 2b sm (elementwise).
+    A convex quadratic on a box: its minimum is the unconstrained one when that is feasible, else on an
+    edge, where it is the 1-D minimum clipped to the edge; all five are evaluated, the best feasible kept."""
+    tiny = 1e-30
+    det = (dd * ss - ds * ds).clamp_min(tiny)
+    cands = [((dm * ss - sm * ds) / det, (sm * dd - dm * ds) / det)]
+    for a_edge in (0.0, 1.0):  # a on an edge, b free
+        cands.append((torch.full_like(dd, a_edge), ((sm - a_edge * ds) / ss.clamp_min(tiny)).clamp(0, rho_s_max)))
+    for b_edge in (0.0, rho_s_max):
+        cands.append((((dm - b_edge * ds) / dd.clamp_min(tiny)).clamp(0, 1), torch.full_like(dd, b_edge)))
+    best_e = torch.full_like(dd, math.inf)
+    best_a, best_b = torch.zeros_like(dd), torch.zeros_like(dd)
+    for a, b in cands:
+        e = a * a * dd + b * b * ss + 2 * a * b * ds - 2 * a * dm - 2 * b * sm
+        better = (a >= 0) & (a <= 1) & (b >= 0) & (b <= rho_s_max) & torch.isfinite(e) & (e < best_e)
+        best_e, best_a, best_b = (torch.where(better, e, best_e), torch.where(better, a, best_a),
+                                  torch.where(better, b, best_b))
+    return best_a, best_b
+
+
+def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor):
+    """(n, 3) rho_d, rho_s in closed form (module docstring) and the line predictions of D and S
+    ((3, n, K) each, or None). Differentiable w.r.t. D and S."""
+    w, m = prob.weight, prob.target
+    wD, wS = w * D, w * S
+    sums = [(wD * D).sum(1), (wD * m).sum(1), (wD * S).sum(1), (wS * S).sum(1), (wS * m).sum(1)]
+    WD = WS = None
+    if prob.has_lines:
+        WD, WS = (torch.matmul(x.permute(2, 0, 1), prob.W) for x in (D, S))  # (3, n, K)
+        v, M = prob.lines_weight, prob.lines
+        extra = [WD * WD, WD * M, WD * WS, WS * WS, WS * M]
+        sums = [s + (v * e).sum(2).T for s, e in zip(sums, extra)]
+    a, b = _solve_box(*(s.double() for s in sums), prob.config.rho_s_max)
+    return a.float(), b.float(), WD, WS
+
+
+def _loss_of(prob: _Problem, m_hat: torch.Tensor, lines_hat: torch.Tensor | None) -> torch.Tensor:
+    """(n,) per-texel loss (module docstring) of predicted lumitexels (n, L, 3) and lines (3, n, K)."""
+    c = prob.config
+    out = (_f(m_hat, c.loss, prob.scale_m) - prob.target_f).square().mean(dim=(1, 2))
+    if prob.has_lines:
+        out = out + c.lambda_lines * (_f(lines_hat, c.loss, prob.scale_lines) - prob.lines_f).square().mean(dim=(0, 2))
+    return out
+
+
+def _projected_loss(prob: _Problem, geom: dict):
+    """The loss of `geom` with its closed-form albedos: (loss (n,), rho_d, rho_s)."""
+    D, S = _bases(prob, geom)
+    rd, rs, WD, WS = _projected(prob, D, S)
+    lines_hat = None if WD is None else rd.T[:, :, None] * WD + rs.T[:, :, None] * WS
+    return _loss_of(prob, rd[:, None] * D + rs[:, None] * S, lines_hat), rd, rs
+
+
+def _rendered_loss(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Tensor) -> torch.Tensor:
+    """The loss of explicit parameters (the neural method's)."""
+    m_hat = _lumitexels(prob, geom, rho_d, rho_s)
+    lines_hat = torch.matmul(m_hat.permute(2, 0, 1), prob.W) if prob.has_lines else None
+    return _loss_of(prob, m_hat, lines_hat)
+
+
+# --- initialisation --------------------------------------------------------------------------------------
+def _peak_normal(prob: _Problem) -> torch.Tensor:
+    """Each texel's half vector between the view and its brightest LED once the diffuse part is removed
+    (diffuse level: the 25th percentile of m / D0 over the LEDs that light a plane-normal white texel
+    well); the plane normal where that half vector is more than 60 deg off it."""
+    c = prob.config
+    N = prob.frame[0].expand(prob.n, 3)
+    geom = _geometry(torch.zeros(prob.n, GEOMETRY_SIZE, device=N.device), prob.frame, c)
+    d0 = _bases(prob, geom)[0].mean(2)
+    grey = prob.target.mean(2)
+    lit = d0 > 0.05 * d0.amax(1, keepdim=True)
+    ratio = torch.where(lit, grey / d0.clamp_min(1e-12), torch.full_like(grey, math.nan))
+    level = torch.nanquantile(ratio, 0.25, dim=1, keepdim=True).nan_to_num(0.0)
+    l_max = (grey - level * d0).argmax(1)
+    led = torch.tensor(prob.rig.leds.positions, dtype=torch.float32, device=N.device)[prob.upper][l_max]
+    cam = torch.tensor(prob.rig.camera(c.camera).centre, dtype=torch.float32, device=N.device)
+    h = _unit(_unit(led - prob.pos) + _unit(cam - prob.pos))
+    return torch.where(((h * N).sum(-1, keepdim=True) > 0.5), h, N)
+
+
+def _best_candidate(prob: _Problem, normal: torch.Tensor):
+    """For one normal per texel, the best (loss (n,), geometry numbers (n, 5), rho_d, rho_s) over the
+    roughness / tangent candidates, each with its closed-form albedos."""
+    c = prob.config
+    n, dev = prob.n, prob.pos.device
+    thetas = [math.pi * k / c.init_thetas for k in range(c.init_thetas)]  # the BRDF has period pi in theta
+    pairs = [(a, a, 0.0) for a in c.init_alphas]
+    pairs += [(ax, ay, th) for ax in c.init_alphas for ay in c.init_alphas if ay < ax for th in thetas]
+    best = None
+    for ax, ay, th in pairs:
+        g = _encode_geometry(normal, torch.full((n,), th, device=dev), torch.full((n,), ax, device=dev),
+                             torch.full((n,), ay, device=dev), prob.frame, c)
+        loss, rd, rs = _projected_loss(prob, _geometry(g, prob.frame, c))
+        if best is None:
+            best = [loss, g, rd, rs]
+        else:
+            better = loss < best[0]
+            best = [torch.where(better.view(-1, *[1] * (x.ndim - 1)), y, x) for x, y in zip(best, (loss, g, rd, rs))]
+    return best
+
+
+def _initial(prob: _Problem):
+    """(geometry numbers (n, 5), rho_d, rho_s) of the best initial candidate per texel: the plane normal,
+    and for texels whose specular peak points elsewhere (> 1 deg off), that peak's half vector, each with
+    every roughness / tangent candidate."""
+    with torch.no_grad():
+        N = prob.frame[0].expand(prob.n, 3)
+        best = _best_candidate(prob, N)
+        h = _peak_normal(prob)
+        sel = torch.nonzero((h * N).sum(-1) < math.cos(math.radians(1.0))).flatten()
+        if sel.numel():
+            other = _best_candidate(prob.part(sel), h[sel])
+            better = other[0] < best[0][sel]
+            for x, y in zip(best, other):
+                x[sel] = torch.where(better.view(-1, *[1] * (x.ndim - 1)), y, x[sel])
+    return best[1], best[2], best[3]
+
+
+# --- the methods -----------------------------------------------------------------------------------------
+def _chunks(prob: _Problem, size: int | None):
+    """Contiguous texel index ranges of at most `size` (None: one range)."""
+    return torch.arange(prob.n, device=prob.pos.device).split(size or prob.n)
+
+
+def _result(prob: _Problem, geom: dict, rho_d, rho_s, history, t_start, info) -> FitResult:
+    out = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in {**geom, "rho_d": rho_d, "rho_s": rho_s}.items()}
+    info = {"method": prob.config.method, "loss": prob.config.loss, "config": asdict(prob.config), **info}
+    return FitResult(**out, history=[float(h) for h in history], seconds=time.perf_counter() - t_start, info=info)
+
+
+def _fit_direct(prob: _Problem, grid_shape=None) -> FitResult:
+    """Adam on the 5 geometry numbers per texel with the albedos in closed form at every step (module
+    docstring), minimising the SUM of per-texel losses, in chunks of `batch` texels."""
+    t_start = time.perf_counter()
+    c = prob.config
+    history = np.zeros(c.steps)
+    parts, init_s, iter_s = [], 0.0, 0.0
+    for idx in _chunks(prob, c.batch):
+        part = prob.part(idx)
+        t0 = time.perf_counter()
+        g = _initial(part)[0].requires_grad_(True)
+        t1 = time.perf_counter()
+        init_s += t1 - t0
+        opt = torch.optim.Adam([g], lr=c.learning_rate)
+        for i in range(c.steps):
+            opt.zero_grad(set_to_none=True)
+            loss = _projected_loss(part, _geometry(g, part.frame, c))[0]
+            loss.sum().backward()
+            opt.step()
+            history[i] += float(loss.detach().sum())
+        iter_s += time.perf_counter() - t1
+        with torch.no_grad():
+            geom = _geometry(g, part.frame, c)
+            parts.append((geom, *_projected_loss(part, geom)))
+    geom = {k: torch.cat([p[0][k] for p in parts]) for k in parts[0][0]}
+    info = {"init_seconds": init_s, "seconds_per_iteration": iter_s / max(c.steps, 1),
+            "texel_loss": torch.cat([p[1] for p in parts]).cpu().numpy()}
+    return _result(prob, geom, torch.cat([p[2] for p in parts]), torch.cat([p[3] for p in parts]),
+                   history / prob.n, t_start, info)
+
+
+def _linear(a: int, b: int, generator: torch.Generator) -> nn.Linear:
+    """nn.Linear with Xavier-uniform weights and zero bias drawn from `generator` (skip_init: the global
+    generator is never touched)."""
+    lin = nn.utils.skip_init(nn.Linear, a, b)
+    nn.init.xavier_uniform_(lin.weight, generator=generator)
+    nn.init.zeros_(lin.bias)
+    return lin
+
+
+class _NeuralField(nn.Module):
+    """Feature texture (channels, R, C) + the 5 MLP heads of reference §5 (sizes from FitConfig)."""
+
+    def __init__(self, grid_shape, config: FitConfig, generator: torch.Generator):
+        super().__init__()
+        R, C = grid_shape
+        self.texture = nn.Parameter(torch.empty(1, config.features, R, C))
+        nn.init.xavier_uniform_(self.texture, generator=generator)  # reference §5: Xavier-uniform
+        h = config.hidden
+        self.heads = nn.ModuleList()
+        for _, k in HEADS:
+            widths = [config.features, h, h, h, k]
+            layers = []
+            for i in range(4):
+                layers.append(_linear(widths[i], widths[i + 1], generator))
+                if i < 3:
+                    layers.append(nn.LeakyReLU(0.2))
+            self.heads.append(nn.Sequential(*layers))
+
+    def forward(self, uv: torch.Tensor) -> torch.Tensor:
+        """uv (B, 2) in [-1, 1] (x = column, y = row) -> numbers (B, 11): geometry 5, then albedos 6."""
+        f = nn.functional.grid_sample(self.texture, uv[None, None], mode="bilinear", align_corners=True)
+        f = f[0, :, 0].T  # (B, channels)
+        return torch.cat([head(f) for head in self.heads], dim=1)
+
+
+def _texel_uv(grid_shape, device) -> torch.Tensor:
+    """Row-major texel centres as grid_sample coordinates (align_corners=True: texel j of C at -1 + 2j/(C-1))."""
+    R, C = grid_shape
+    i, j = torch.meshgrid(torch.arange(R, device=device), torch.arange(C, device=device), indexing="ij")
+    x = (2 * j / max(C - 1, 1) - 1).reshape(-1)
+    y = (2 * i / max(R - 1, 1) - 1).reshape(-1)
+    return torch.stack([x, y], dim=1).float()
+
+
+def _fit_neural(prob: _Problem, grid_shape) -> FitResult:
+    """Feature texture + 5 heads (reference §5), warm-started on the initial numbers, then Adam on random
+    texel batches (drawn with replacement, as the reference) from a seeded generator."""
+    t_start = time.perf_counter()
+    c = prob.config
+    gen = torch.Generator().manual_seed(c.seed)
+    model = _NeuralField(tuple(int(v) for v in grid_shape), c, gen).to(prob.pos.device)
+    uv = _texel_uv(grid_shape, prob.pos.device)
+    init = [_initial(prob.part(idx)) for idx in _chunks(prob, c.batch)]
+    target = torch.cat([torch.cat([g, _logit(rd), _logit(rs / c.rho_s_max)], dim=1) for g, rd, rs in init])
+    t1 = time.perf_counter()
+    # warm start (ours): regress the heads onto the initial numbers (no rendering, all texels per step)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    for _ in range(c.warm_start_steps):
+        opt.zero_grad(set_to_none=True)
+        nn.functional.mse_loss(model(uv), target).backward()
+        opt.step()
+    t2 = time.perf_counter()
+    opt = torch.optim.Adam(model.parameters(), lr=c.learning_rate)
+    batch = c.batch or 256
+    history = []
+    for _ in range(c.steps):
+        idx = torch.randint(prob.n, (batch,), generator=gen).to(prob.pos.device)
+        raw = model(uv[idx])
+        part = prob.part(idx)
+        loss = _rendered_loss(part, _geometry(raw[:, :5], prob.frame, c), **_albedo_numbers(raw[:, 5:], c)).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        history.append(float(loss.detach()))
+    t3 = time.perf_counter()
+    with torch.no_grad():
+        raw = model(uv)
+        geom, alb = _geometry(raw[:, :5], prob.frame, c), _albedo_numbers(raw[:, 5:], c)
+        texel_loss = torch.cat([_rendered_loss(prob.part(i), {k: v[i] for k, v in geom.items()}, alb["rho_d"][i],
+                                               alb["rho_s"][i]) for i in _chunks(prob, c.batch)])
+    info = {"init_seconds": t1 - t_start, "warm_start_seconds": t2 - t1,
+            "seconds_per_iteration": (t3 - t2) / max(c.steps, 1), "texel_loss": texel_loss.cpu().numpy(),
+            "batch": batch}
+    return _result(prob, geom, alb["rho_d"], alb["rho_s"], history, t_start, info)
+
+
+# one function per method, all (problem, grid_shape) -> FitResult (colour-science style dispatch)
+FITTING_METHODS = {"direct": _fit_direct, "neural": _fit_neural}
+
+
+def fit_method(rig, positions, lumitexels, *, method: str | None = None, lines=None, line_weights=None,
+               grid_shape=None, config: FitConfig = FitConfig()) -> FitResult:
+    """Dispatch to FITTING_METHODS[method] (None: config.method) after checking the inputs (fit_ggx)."""
+    if not isinstance(config, FitConfig):
+        raise ValueError(f"config must be a FitConfig, got {type(config).__name__}")
+    if method is not None and method != config.method:
+        config = replace(config, method=method)
+    prob = _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config)
+    return FITTING_METHODS[config.method](prob, grid_shape)
+
+
+def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, grid_shape=None,
+            config: FitConfig = FitConfig()) -> FitResult:
+    """Fit anisotropic GGX and the local frame per texel (module docstring) with config.method.
+
+    positions (N, 3) mm, world; lumitexels (N, L_upper, 3) in network units (upper LEDs in rig order,
+    np.flatnonzero(~rig.is_bottom)), torch or numpy, >= 0; lines (N, K, 3) network units with
+    line_weights (K, L_upper, 3) (the upper-LED part of the line patterns' weights), optional together;
+    grid_shape (R, C) with N = R C in row-major order, needed by method "neural". Raises ValueError on
+    NaN/Inf or mis-shaped input. Deterministic on the CPU: the same inputs and seed give the same result."""
+    return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, grid_shape=grid_shape,
+                      config=config)
+
+
+# --- export ----------------------------------------------------------------------------------------------
+def to_maps(result: FitResult, grid_shape, size_mm: float, transparency=None, name: str = "fit") -> SVBRDFMaps:
+    """FitResult (row-major texels of an R x C grid, R == C) -> SVBRDFMaps in the reference's export
+    convention (§5, §7.1): alpha_x >= alpha_y (twin.samples.canonical_anisotropy), rho clipped to the map
+    ranges, unit n with n_z > 0 and a unit tangent orthogonal to it. transparency (R, C) in [0, 1] or None
+    (opaque)."""
+    R, C = (int(v) for v in grid_shape)
+    N = result.normal.shape[0]
+    if R * C != N:
+        raise ValueError(f"grid_shape {(R, C)} has {R * C} texels but the result has {N}")
+    if R != C:
+        raise ValueError(f"SVBRDF maps are square: grid_shape must have R == C, got {(R, C)}")
+    n = result.normal.astype(np.float64).reshape(R, C, 3).copy()
+    n[..., 2] = np.maximum(n[..., 2], 1e-6)  # the parameterisation keeps n.N > 0; guard float round-off
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    t = result.tangent.astype(np.float64).reshape(R, C, 3)
+    t = t - np.einsum("ijk,ijk->ij", t, n)[..., None] * n
+    t /= np.linalg.norm(t, axis=2, keepdims=True)
+    alpha = np.clip(np.stack([result.alpha_x, result.alpha_y], -1).reshape(R, C, 2), *ALPHA_RANGE)
+    beta = np.zeros((R, C)) if transparency is None else np.asarray(transparency, dtype=np.float64)
+    if beta.shape != (R, C):
+        raise ValueError(f"transparency must have shape {(R, C)}, got {beta.shape}")
+    maps = SVBRDFMaps(rho_d=np.clip(result.rho_d.reshape(R, C, 3), *RHO_D_RANGE),
+                      rho_s=np.clip(result.rho_s.reshape(R, C, 3), *RHO_S_RANGE), alpha=alpha, normal=n,
+                      tangent=t, transparency=beta, size_mm=size_mm, name=name)
+    return canonical_anisotropy(maps)

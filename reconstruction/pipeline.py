@@ -1,0 +1,188 @@
+"""The reconstruction pipeline (`hemicube reconstruct`): a capture folder in, OpenSVBRDF maps and latents out.
+
+The same code runs on a folder from the twin or from the real device (it reads only the photos, the
+patterns the LEDs showed and the rig folder the capture carries; the ground truth, when present, is left
+to `reconstruction.validation`).
+
+    1. alignment       secondary -> primary, uniform-light photos (reconstruction.alignment; paper §8)
+    2. extraction      texture grid + per-texel measurements (reconstruction.extraction; reference §6.1, §6.3)
+    3. decode          encoder -> 56-D latent per texel (reconstruction.latents; paper §7)
+    4. fine-tuning     three passes against the line photos, one held out (reconstruction.finetune; §7.1)
+    5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.fitting; §7.2)
+
+Output folder:
+    reconstruction.json      config, network, timings (s) per stage, counts
+    alignment.npz            the alignment map (primary pixel -> secondary pixel) and homography
+    measurements.npz         the extracted measurements (reconstruction.extraction.Measurements)
+    latent.exr               72 float32 channels L_0 ... L_71 (reference §4: [a_R, a_G, a_B, s])
+    latent_passes.npz        the latents after each fine-tuning pass (pass0 ... pass3)
+    maps/                    the fitted OpenSVBRDF maps (twin.samples format: pd/ps/ax_ay/normal/tangent/
+                             transparency textures, αx ≥ αy)
+Every file is written atomically; the folder is complete when reconstruction.json exists.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .alignment import AlignConfig
+from .finetune import FinetuneConfig
+from .fitting import FitConfig
+
+FORMAT_NAME = "hemicube-reconstruction"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    # texels per side of the texture grid; the paper reconstructs 1024 x 1024 (reference §6.1). 48 is this
+    # project's default for the mini rig on a CPU (its 120 mm sample spans ~110 primary pixels: ~2 px a texel)
+    resolution: int = 48
+    size_mm: float | None = None   # side of the texture grid; None: detected (reference §6.1, 6.5% shrink)
+    # the line photo left out of fine-tuning for validation (the paper holds out 1 of 64, unnamed);
+    # None: the brightest line over the sample (a dim line would score the sensor's noise, not the model)
+    holdout_line: int | None = None
+    network: str = "pretrained"    # "pretrained" (shipped for this rig) or a `hemicube train` run folder
+    device: str = "cpu"
+    align: AlignConfig = field(default_factory=AlignConfig)
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+
+
+@dataclass
+class Reconstruction:
+    directory: Path
+    grid: object
+    measurements: object
+    latent: np.ndarray        # (N, 72) final latents
+    maps: object              # twin.samples.SVBRDFMaps
+    holdout_line: int
+    timings: dict
+    alignment: object
+    model: object
+
+
+def load_network(name: str, rig, device="cpu"):
+    """The acquisition network: the one shipped for `rig` ("pretrained") or a `hemicube train` run folder."""
+    if name == "pretrained":
+        from .pretrained import load_pretrained, pretrained_info
+
+        info = pretrained_info(rig.name)
+        if info is None or info["rig_digest"] != rig.digest():
+            raise ValueError(f"no network ships for rig {rig.name!r}; train one (`hemicube train --rig ...`) and "
+                             "pass its run folder (--network RUN)")
+        return load_pretrained(rig.name, device)[0]
+    from .train import load_run_model
+
+    return load_run_model(name, device)
+
+
+def choose_holdout(lines: np.ndarray, valid: np.ndarray) -> int:
+    """The line whose median texel value (mean RGB) over the valid texels is the largest."""
+    return int(np.argmax(np.median(lines[valid].mean(axis=2), axis=0)))
+
+
+def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig(), *, progress: bool = True,
+                rig=None) -> Reconstruction:
+    """Run the pipeline on a capture folder into `output` (module docstring)."""
+    import twin
+    from twin.atomic import write_bytes_atomic
+    from twin.samples import write_maps
+
+    from .alignment import align_views
+    from .extraction import UNIFORM, extract, read_manifest, read_photo, texture_grid
+    from .finetune import finetune
+    from .fitting import fit_ggx, to_maps
+    from .latents import check_patterns, decode, write_latent_exr
+
+    capture, out = Path(capture), Path(output)
+    doc = read_manifest(capture)
+    if rig is None:
+        rig = twin.load_rig(capture / "rig") if (capture / "rig").is_dir() else twin.load_rig(doc["rig"])
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+
+    def stage(name):
+        if progress:
+            print(f"[reconstruct] {name} ...", flush=True)
+        return time.perf_counter()
+
+    t = stage("alignment")
+    alignment = align_views(read_photo(capture, UNIFORM, 0), read_photo(capture, UNIFORM, 1), rig, config.align)
+    timings["alignment_s"] = time.perf_counter() - t
+    _save_npz(out / "alignment.npz", map=alignment.map, homography=alignment.homography)
+
+    t = stage("extraction")
+    grid = texture_grid(capture, rig, config.resolution, config.size_mm)
+    meas = extract(capture, rig, grid, alignment, progress=progress)
+    if not meas.valid.all():  # the grid lies inside the sample, which both views see whole
+        raise ValueError(f"{capture}: {int((~meas.valid).sum())} of the {grid.resolution}^2 texels are not seen "
+                         "by both cameras (or their photos are not finite); choose a smaller --size-mm")
+    timings["extraction_s"] = time.perf_counter() - t
+    meas.save(out / "measurements.npz")
+
+    t = stage("decode")
+    model = load_network(config.network, rig, config.device)
+    check_patterns(model, capture, rig)
+    z56 = decode(model, meas.learned, device=config.device)
+    timings["decode_s"] = time.perf_counter() - t
+
+    hold = choose_holdout(meas.lines, meas.valid) if config.holdout_line is None else int(config.holdout_line)
+    if not 0 <= hold < meas.lines.shape[1]:
+        raise ValueError(f"holdout_line must lie in [0, {meas.lines.shape[1]}), got {hold}")
+    t = stage(f"fine-tuning (line {hold} held out)")
+    ft_cfg = _with_holdout(config.finetune, hold, config.device)
+    ft = finetune(model, z56, meas.lines, meas.line_weights, ft_cfg)
+    timings["finetune_s"] = time.perf_counter() - t
+    latent = ft.latent
+    write_latent_exr(out / "latent.exr", latent, grid.shape)
+    _save_npz(out / "latent_passes.npz", **ft.passes)
+
+    t = stage("fitting")
+    lumi = _decoded_rgb(model, ft.latent, config.device)
+    fit = fit_ggx(rig, grid.positions(rig), lumi, lines=meas.lines, line_weights=meas.line_weights,
+                  grid_shape=grid.shape, config=config.fit)
+    timings["fitting_s"] = time.perf_counter() - t
+    maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
+                   name=f"reconstruction of {doc.get('sample', 'a capture')}")
+    write_maps(maps, out / "maps", overwrite=True)
+
+    summary = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "capture": str(capture),
+               "rig": rig.name, "rig_digest": rig.digest(), "config": _jsonable(asdict(config)),
+               "grid": {"resolution": grid.resolution, "size_mm": grid.size_mm},
+               "texels": int(meas.valid.size), "holdout_line": hold, "timings_s": timings,
+               "finetune": {"iterations": ft.iterations, "seconds": ft.seconds},
+               "alignment": _jsonable(alignment.info)}
+    write_bytes_atomic(out / "reconstruction.json", json.dumps(summary, indent=1).encode())
+    return Reconstruction(out, grid, meas, latent, maps, hold, timings, alignment, model)
+
+
+def _decoded_rgb(model, latent72: np.ndarray, device) -> np.ndarray:
+    """(N, L, 3) RGB lumitexels (network units) of 72-D latents: channel c decodes (a_c, s) (reference §3.3)."""
+    import torch
+
+    z = torch.from_numpy(np.ascontiguousarray(latent72, dtype=np.float32)).to(device)
+    a, s = z[:, :24].reshape(len(z), 3, 8), z[:, 24:]
+    with torch.no_grad():
+        return torch.stack([model.decode_lumitexel(a[:, c], s) for c in range(3)], dim=2).cpu().numpy()
+
+
+def _with_holdout(cfg, hold: int, device):
+    from dataclasses import replace
+
+    return replace(cfg, holdout=tuple(sorted(set(cfg.holdout) | {hold})), device=device)
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    from twin.atomic import atomic_path
+
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, **arrays)
+
+
+def _jsonable(x):
+    return json.loads(json.dumps(x, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))

@@ -1,0 +1,92 @@
+"""Scoring a reconstruction against the twin's ground truth (issue "reconstruction pipeline", item 6).
+
+    metrics, panels = evaluate(capture, recon, rig)
+    checks = check(metrics, THRESHOLDS["mini"])            # reconstruction.report
+    write_report(out, title=..., metrics=metrics, checks=checks, panels=panels, notes=...)
+
+What is compared
+* **alignment**: the alignment map against the capture's pixel <-> texel sidecars (secondary pixels);
+* **maps**: the fitted maps against the true maps resampled onto the reconstruction's texture grid
+  (normal and tangent angles, |log alpha|, relative rho_d and rho_s; reconstruction.report.map_errors);
+* **renders under the held-out line** (the photo left out of fine-tuning), on the texture grid:
+  the photo's texel values against (a) the latent render (decoder x line pattern, reference §6.4's
+  "latent" image), (b) the fitted maps rendered by the forward model, and (c) the TRUE maps rendered the
+  same way, (c) being the ceiling the photo's noise and the pixel footprint allow. SSIM and PSNR.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .report import RenderPanel, Threshold, image_scores, map_errors, map_panels, resample_maps, truth_coverage
+
+# Thresholds that the CI configuration (mini rig, ramps, 48^2 texels, the shipped mini network) reaches,
+# with the margin stated in docs/accuracy.md. Set once from the measured values; not to be loosened to pass.
+THRESHOLDS = {
+    "mini": [],
+}
+
+
+def _render_lines(rig, positions, params: dict, pattern: np.ndarray, device) -> np.ndarray:
+    """(N, 3) line measurements in network units of texels with params under one line pattern (L_upper, 3)."""
+    import twin
+
+    from .data import LUMITEXEL_SCALE
+
+    w = np.zeros((1, rig.num_leds, 3), np.float32)
+    w[0, np.flatnonzero(~np.asarray(rig.is_bottom))] = pattern
+    m = twin.measurements(rig, positions.astype(np.float32), patterns=w, transparency=np.zeros(len(positions)),
+                          convention="physical", camera=next(iter(rig.cameras)), visibility=True,
+                          device=device, **params)
+    return m[:, 0] * np.float32(LUMITEXEL_SCALE)
+
+
+def _map_params(maps) -> dict:
+    return dict(normal=maps.normal.reshape(-1, 3), tangent=maps.tangent.reshape(-1, 3),
+                rho_d=maps.rho_d.reshape(-1, 3), rho_s=maps.rho_s.reshape(-1, 3),
+                alpha_x=maps.alpha[..., 0].reshape(-1), alpha_y=maps.alpha[..., 1].reshape(-1))
+
+
+def evaluate(capture, recon, rig, device="cpu") -> tuple[dict, list]:
+    """(metrics, panels) of a reconstruction of a twin capture (which carries ground_truth/)."""
+    from pathlib import Path
+
+    from twin.samples import read_maps
+
+    from .alignment import alignment_error
+    from .finetune import simulate_lines
+
+    capture = Path(capture)
+    gt = capture / "ground_truth"
+    if not (gt / "maps").is_dir():
+        raise ValueError(f"{capture}: no ground_truth/ (a capture of the real device cannot be scored)")
+    grid, meas, k = recon.grid, recon.measurements, recon.holdout_line
+    R = grid.resolution
+    metrics: dict = {"grid": {"resolution": R, "size_mm": grid.size_mm, "texel_mm": grid.texel_mm},
+                     "holdout_line": k, "timings_s": dict(recon.timings)}
+
+    metrics["alignment"] = alignment_error(recon.alignment, np.load(gt / "pixel_texel_cam00.npy"),
+                                           np.load(gt / "pixel_texel_cam01.npy"))
+
+    true_maps = read_maps(gt / "maps")
+    truth = resample_maps(true_maps, grid.size_mm, R)
+    on_sample = truth_coverage(true_maps, grid.size_mm, R)
+    metrics["maps"] = map_errors(truth, recon.maps, mask=on_sample)
+
+    pos = grid.positions(rig)
+    W = meas.line_weights[k]
+    photo = meas.lines[:, k].reshape(R, R, 3)
+    latent = simulate_lines(recon.model, recon.latent, meas.line_weights[k:k + 1])[:, 0].reshape(R, R, 3)
+    fitted = _render_lines(rig, pos, _map_params(recon.maps), W, device).reshape(R, R, 3)
+    true = _render_lines(rig, pos, _map_params(truth), W, device).reshape(R, R, 3)
+    metrics["render"] = {"latent": image_scores(photo, latent), "maps": image_scores(photo, fitted),
+                         "truth_maps": image_scores(photo, true)}
+
+    panels = [RenderPanel(f"heldout_line_{k:02d}", photo, latent, fitted, origin="lower",
+                          caption=f"held-out line {k} on the texture grid: photo | latent render | map render"),
+              RenderPanel(f"heldout_line_{k:02d}_truth", photo, latent, true, origin="lower",
+                          caption="the same photo against the TRUE maps rendered (the noise/footprint ceiling)")]
+    return metrics, panels + map_panels(truth, recon.maps, mask=on_sample)
+
+
+def thresholds_for(rig_name: str) -> list[Threshold]:
+    return list(THRESHOLDS.get(rig_name, []))

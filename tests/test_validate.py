@@ -1,0 +1,43 @@
+"""The main job, `hemicube validate`: simulate, reconstruct, score, with the mini rig's thresholds (CI).
+
+The thresholds themselves live in reconstruction.validation.THRESHOLDS and docs/accuracy.md; this test runs
+the README's command (on the session's shared capture, resumed) and checks that it passes them, prints the
+table, and writes the report. A second run on a map folder (`--sample DIR`) checks that any OpenSVBRDF map
+folder goes through the same path.
+"""
+from __future__ import annotations
+
+import json
+
+import twin.cli
+from reconstruction.validation import thresholds_for
+from twin.samples import load_sample, write_maps
+
+
+def test_main_job_passes_its_thresholds(validate_dir, capsys):
+    rc = twin.cli.main(["validate", "-o", str(validate_dir), "--no-progress"])
+    out = capsys.readouterr().out
+    assert "PASS" in out and "FAIL" not in out, out
+    assert rc == 0, out
+    metrics = json.loads((validate_dir / "report" / "metrics.json").read_text())
+    report = (validate_dir / "report" / "report.md").read_text()
+    rows = thresholds_for("mini")
+    assert len(rows) >= 6 and all(r.metric.split(".")[0] in metrics for r in rows)
+    for r in rows:
+        assert r.metric in report
+    assert (validate_dir / "reconstruction" / "maps" / "normal_texture.exr").is_file()
+    assert (validate_dir / "reconstruction" / "latent.exr").is_file()
+    assert sorted(p.name for p in (validate_dir / "report" / "images").iterdir())
+
+
+def test_validate_any_map_folder(tmp_path, capsys):
+    """`--sample DIR`: a folder of OpenSVBRDF maps (here brushed_metal written out), at a small grid (no
+    thresholds apply off the default grid: the run must complete and report)."""
+    maps = write_maps(load_sample("brushed_metal", resolution=64), tmp_path / "maps")
+    out = tmp_path / "v"
+    rc = twin.cli.main(["validate", "--sample", str(maps), "--resolution", "16", "-o", str(out), "--no-progress",
+                        "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert rc == 0 and doc["passed"] and doc["thresholds"] == []
+    assert doc["metrics"]["maps"]["normal_deg"]["median"] >= 0
+    assert (out / "report" / "report.md").is_file()
