@@ -21,11 +21,21 @@ Two steps, as in the reference:
      of the frame's plane, off by the parallax of that height (~1 px in the mini rig's 45 deg view).
    * "calibrated": the homography the two calibrated cameras (rig R, t) induce on the sample plane.
 2. **Dense** (`AlignConfig.dense`, reference §6.2): dense SIFT descriptors (SIFT Flow) of the primary photo
-   and of the secondary photo warped into the primary's pixel grid by the coarse mapping, then PatchMatch
-   from the primary to the warped secondary over integer offsets, so that offset 0 IS the coarse mapping.
-   Ours on top of the reference's integer result: a sub-pixel offset from a quadratic fit of the patch
-   cost over the 3 x 3 integer offsets around the best one, and a gate that keeps the coarse mapping
-   where the match is not distinctive (see `AlignConfig.gate`).
+   and of the secondary photo warped into the primary's pixel grid by the homography, then PatchMatch from
+   the primary to the warped secondary over integer offsets, so that offset 0 IS the homography. Ours on
+   top of the reference's integer result:
+   * a sub-pixel offset from a quadratic fit of the patch cost over the 3 x 3 integer offsets around the
+     best one (its Hessian says how well the match is determined in each direction);
+   * a refit of the homography to all the dense matches, each weighted by that Hessian (an edge constrains
+     only across itself; a flat region not at all), then matching again relative to the refitted
+     homography (`AlignConfig.refine_passes`). For a planar sample the refitted homography is the best
+     mapping there is, and it carries the textured parts' accuracy into the textureless ones, which
+     PatchMatch alone cannot align (on the mini rig the SIFT homography is off by a median 0.7-2 px, up to
+     4 px: its ~20 matches cluster on the frame's markers, 1.5 mm above the sample plane);
+   * a gate: a pixel keeps its own PatchMatch offset only where that match is distinct and clearly better
+     than the homography's (`AlignConfig.gate`, `gain`), i.e. where the sample departs from the plane;
+     elsewhere the map is the homography.
+   The dense step looks inside the holder frame's window only (`_roi`).
 
 Coordinates: pixel (x = column, y = row), centres at integers (twin.units). The map is returned in RAW
 (distorted) pixel coordinates of both cameras, as the photos are stored.
@@ -35,10 +45,10 @@ photo is tone-mapped on its own: divided by the 99.5th percentile of its grey le
 to [0, 1] and raised to 1/2.2 (a display gamma); SIFT gets that grey image quantised to 8 bits, the dense
 descriptors get the same curve applied to each RGB channel, in float.
 
-Scale: the reference's pixel constants (cell 20 px, jumps 20..1, search radii 50..1, initial noise 30,
-ROI margin 25 px) are for images of the calibration's half resolution, 2664 px wide (reference §1.5,
-§6.2). They are scaled by (image width / 2664), rounded to whole pixels (at least 1) where they are integer
-offsets; the mini rig's 222-px images get a cell of 1.67 px, jumps (2, 1) and search radii (4, 2, 1).
+Scale: the reference's pixel constants (cell 20 px, jumps 20..1, search radii 50..1, initial noise 30) are
+for images of the calibration's half resolution, 2664 px wide (reference §1.5, §6.2). They are scaled by
+(image width / 2664), rounded to whole pixels (at least 1) where they are integer offsets: the mini rig's
+222-px images get a cell of 1.67 px, jumps (2, 1), search radii (4, 2, 1) and offsets within +-4 px.
 """
 from __future__ import annotations
 
@@ -86,12 +96,17 @@ class AlignConfig:
     search_radii: tuple[float, ...] = (50, 25, 12, 6, 3, 1)  # reference px (reference code, alpha = 0.5)
     init_noise: float = 30  # reference px: initial offsets uniform in [-n, n) (reference code)
     max_offset: float = 50  # reference px: offsets are limited to |dx|, |dy| <= this (ours; = the search radius)
-    gate: float = 4.0  # ours: keep the sub-pixel PatchMatch offset only where the patch cost rises, per px of
-    #                    offset, by more than `gate` times its minimum in every direction (smallest eigenvalue
-    #                    of the fitted cost Hessian > gate * minimum cost); elsewhere the coarse mapping stays
+    # ours, the gate: a pixel takes its sub-pixel PatchMatch offset only where the fitted minimum c* of its patch
+    # cost is distinct, smallest eigenvalue of the fitted cost Hessian > gate c* (not a textureless region, not
+    # an edge), AND clearly better than the homography's offset 0, c(0) - c* > gain c*; elsewhere the map keeps
+    # the homography. c* measures how well the two views' descriptors can agree there at all (noise,
+    # view-dependent appearance), so both tests are relative to it.
+    gate: float = 2.0
+    gain: float = 1.0
     volume_budget_mb: float = 1024.0  # ours: precompute the cost of every offset when it fits, else evaluate
     #                                    each PatchMatch candidate directly (same costs; see _PatchCost)
-    refine: bool = True  # ours: refit the homography to the dense matches, then match again relative to it
+    refine_passes: int = 3  # ours: refit the homography to the dense matches and match again relative to it, up
+    #                         to this many times (fewer once it moves < 0.1 px); 0 = the reference's single pass
     seed: int = 0  # PatchMatch's random initialisation and search (torch.Generator)
     device: str = "cpu"
 
@@ -102,9 +117,10 @@ class AlignConfig:
             raise ValueError(f"AlignConfig.ratio must be in (0, 1], got {self.ratio}")
         if self.patch < 1 or self.patch % 2 == 0:
             raise ValueError(f"AlignConfig.patch must be a positive odd number of pixels, got {self.patch}")
-        if self.iterations < 0 or self.min_inliers < 4 or self.min_markers < 1 or self.marker_upsample < 1:
-            raise ValueError("AlignConfig: iterations >= 0, min_inliers >= 4, min_markers >= 1 and "
-                             "marker_upsample >= 1 are required")
+        if (self.iterations < 0 or self.refine_passes < 0 or self.min_inliers < 4 or self.min_markers < 1
+                or self.marker_upsample < 1):
+            raise ValueError("AlignConfig: iterations >= 0, refine_passes >= 0, min_inliers >= 4, min_markers >= 1 "
+                             "and marker_upsample >= 1 are required")
         for name in ("ransac_px", "cell_size"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
@@ -113,7 +129,7 @@ class AlignConfig:
             v = getattr(self, name)
             if not v or any(not (np.isfinite(r) and r > 0) for r in v):
                 raise ValueError(f"AlignConfig.{name} must be a non-empty tuple of positive radii, got {v}")
-        for name in ("init_noise", "max_offset", "gate", "orientation_sharpness", "norm_floor",
+        for name in ("init_noise", "max_offset", "gate", "gain", "orientation_sharpness", "norm_floor",
                      "volume_budget_mb"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -124,8 +140,9 @@ class AlignConfig:
 class Alignment:
     """map (H0, W0, 2) float32: for every primary pixel (x, y), raw (distorted) coordinates, the secondary
     pixel (x, y), raw coordinates, seeing the same sample point; NaN where unknown (off the secondary image).
-    homography: 3x3 float64, the coarse step, from UNDISTORTED primary pixels to UNDISTORTED secondary
-    pixels (each camera's own K): [x1, y1, 1] ~ H [x0, y0, 1].
+    homography: 3x3 float64 from UNDISTORTED primary pixels to UNDISTORTED secondary pixels (each camera's own
+    K): [x1, y1, 1] ~ H [x0, y0, 1]; the homography the map uses wherever the dense gate keeps it: the coarse
+    step's, refitted by the dense step when that ran (the coarse one is then info["coarse_homography"]).
     info: what was done and measured (method, matches, inliers, markers, dense statistics, seconds)."""
 
     map: np.ndarray
@@ -331,7 +348,7 @@ def dense_sift(img: torch.Tensor, cell: float, sharpness: float = 9.0, floor: fl
     # tent filter of half-width `cell`, separable, normalised to sum 1
     r = int(np.ceil(cell)) - 1 if float(cell).is_integer() else int(np.floor(cell))
     taps = 1 - torch.abs(torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)) / cell
-    taps = (taps / taps.sum()).clamp_min(0)
+    taps = taps / taps.sum()
     b = bins[:, None]
     if r > 0:
         b = F.conv2d(F.pad(b, (r, r, 0, 0), mode="reflect"), taps.view(1, 1, 1, -1))
@@ -500,14 +517,17 @@ def _subpixel(cost: _PatchCost, off: torch.Tensor):
 
 
 def _refit(H, field, roi, box, cam0, cam1, cfg):
-    """Refine the homography with the dense matches (ours): the correction H' = H T^-1 (I + E) T (E: 8
-    parameters, T normalising the undistorted primary pixels) minimising sum_p r_p' A_p r_p, r_p the
-    difference between the offset H' implies at pixel p (in the primary grid, through the local Jacobian of
-    the mapping by H) and the matched offset, A_p the fitted cost Hessian there (positive part). A_p is the
-    information of the match: an edge constrains only across itself, a corner in both directions, a flat
-    region not at all (the aperture problem). Pixels used: in the ROI, with a minimum rising by more than
-    cfg.gate x its depth in at least one direction. Robust: iteratively reweighted, weight 1 / m for a
-    residual of m > 1 px along the strong direction. Gauss-Newton with numerical derivatives."""
+    """Refit the homography to the dense matches (ours). H' = H T^-1 (I + E) T (E: 8 parameters, T
+    normalising the undistorted primary pixels) minimises sum_p w_p r_p' A_p r_p, where r_p is the difference
+    between the offset that H' implies at pixel p (in the primary grid, through the local Jacobian of the
+    mapping by H) and the matched sub-pixel offset, and A_p is the information of the match: the fitted cost
+    Hessian (positive part) over the fitted minimum cost (the noise level of an SSD), so that an edge
+    constrains only across itself and a flat region not at all (the aperture problem). Pixels used: in the
+    ROI, away from the offset window's edge, with a Hessian eigenvalue above cfg.gate x the minimum cost in
+    at least one direction. Robust: iteratively reweighted by the residual m (px along the match's strongest
+    direction), first Huber (w = 1 / m beyond 1 px), then Cauchy (w = 1 / (1 + (m / s)^2), s = 1.48 x the
+    median m, at least 0.05 px), so that a part of the sample off the plane does not pull the plane's fit.
+    Gauss-Newton with numerical derivatives."""
     bx0, by0 = box[:2]
     hess = field["hess"]
     lam, vec = np.linalg.eigh(np.nan_to_num(hess))
@@ -519,8 +539,10 @@ def _refit(H, field, roi, box, cam0, cam1, cfg):
         return H, {"pixels": int(len(ys)), "applied": False}
     P = np.stack([xs + bx0, ys + by0], axis=1).astype(np.float64)
     f = field["flow"][ys, xs]
-    A = np.einsum("nij,nj,nkj->nik", vec[ys, xs], np.maximum(lam[ys, xs], 0), vec[ys, xs])
+    Hp = np.einsum("nij,nj,nkj->nik", vec[ys, xs], np.maximum(lam[ys, xs], 0), vec[ys, xs])
     lmax = lam[ys, xs, 1]
+    cs = np.maximum(field["cmin"][ys, xs], 0)
+    A = Hp / np.maximum(cs, 1e-3 * np.median(cs) + 1e-12)[:, None, None]  # information: Hessian / noise level
     u = _undistort_px(cam0, P)
     base = _distort_px(cam1, _apply_h(H, u))
     ex, ey = np.array([1.0, 0.0]), np.array([0.0, 1.0])
@@ -542,21 +564,23 @@ def _refit(H, field, roi, box, cam0, cam1, cfg):
     theta = np.zeros(8)
     w = np.ones(len(P))
     h = 1e-6
-    for _ in range(6):
+    for it in range(8):
         g = offsets(theta)
         G = np.stack([(offsets(theta + h * np.eye(8)[k]) - g) / h for k in range(8)], axis=2)  # (N, 2, 8)
-        r = f - g
-        WA = w[:, None, None] * A
-        N = np.einsum("nik,nij,njl->kl", G, WA, G)
-        b = np.einsum("nik,nij,nj->k", G, WA, r)
-        theta = theta + np.linalg.lstsq(N, b, rcond=None)[0]
+        GtWA = G.transpose(0, 2, 1) @ (w[:, None, None] * A)  # (N, 8, 2)
+        normal = (GtWA @ G).sum(axis=0)
+        rhs = (GtWA @ (f - g)[..., None]).sum(axis=0)[:, 0]
+        theta = theta + np.linalg.lstsq(normal, rhs, rcond=None)[0]
         res = f - offsets(theta)
-        m = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", res, A, res), 0) / lmax)  # px along the strong direction
-        w = 1 / np.maximum(m, 1)
+        m = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", res, Hp, res), 0) / lmax)  # px along the strong direction
+        if it < 3:  # Huber first (convex: gets close from any start), then Cauchy at the residuals' own scale
+            w = 1 / np.maximum(m, 1)
+        else:
+            sigma = max(1.4826 * float(np.median(m)), 0.05)
+            w = 1 / (1 + (m / sigma) ** 2)
     Hn = homography(theta)
     shift = np.linalg.norm(offsets(theta), axis=1)
-    return Hn / Hn[2, 2], {"pixels": int(len(P)), "applied": True, "inliers": int((m <= 1).sum()),
-                           "median_inlier_residual_px": float(np.median(m[m <= 1])) if (m <= 1).any() else None,
+    return Hn / Hn[2, 2], {"pixels": int(len(P)), "applied": True, "median_residual_px": float(np.median(m)),
                            "median_shift_px": float(np.median(shift))}
 
 
@@ -618,12 +642,13 @@ def align_views(primary: np.ndarray, secondary: np.ndarray, rig, config: AlignCo
 
 
 def _dense(t0, t1, cam0, cam1, H, rig, cfg, scale):
-    """The dense step. Returns the homography the map falls back on (H, refined when cfg.refine), the per-pixel
+    """The dense step. Returns the homography the map falls back on (refitted, cfg.refine_passes), the per-pixel
     corrections (H0, W0, 2) in primary px (the map is H applied at pixel + correction; 0 where the gate keeps
     the homography), and info."""
     t = time.perf_counter()
     p = {"cell": cfg.cell_size if cfg.cell_size is not None else 20.0 * scale,
-         "R": max(1, int(round(cfg.max_offset * scale))),
+         # one more than max_offset: an offset at the limit still has the 3 x 3 neighbours of the sub-pixel fit
+         "R": max(1, int(round(cfg.max_offset * scale))) + 1,
          "jumps": _scaled(cfg.jump_radii, scale), "searches": _scaled(cfg.search_radii, scale),
          "init": max(1, int(round(cfg.init_noise * scale)))}
     # how far from a pixel its cost looks: offset window, patch, descriptor cells (2 cells + the tent) and Sobel
@@ -636,14 +661,20 @@ def _dense(t0, t1, cam0, cam1, H, rig, cfg, scale):
     gen = torch.Generator().manual_seed(int(cfg.seed))
     passes = []
     field = _match(t0, t1, cam0, cam1, H, box, cfg, p, gen)
-    if cfg.refine:
+    for _ in range(cfg.refine_passes):
         H, refit = _refit(H, field, roi, box, cam0, cam1, cfg)
         passes.append(refit)
+        if not refit["applied"]:
+            break
         field = _match(t0, t1, cam0, cam1, H, box, cfg, p, gen)
-    accept = roi & field["known"] & (field["lam_min"] > cfg.gate * np.maximum(field["cmin"], 0))
+        if refit["median_shift_px"] < 0.1:  # converged to within the matches' own noise
+            break
+    # the gate (AlignConfig.gate, gain): a distinct minimum, clearly better than the homography's offset 0
+    cmin = np.maximum(field["cmin"], 0)
+    accept = roi & field["known"] & (field["lam_min"] > cfg.gate * cmin) & (field["c_zero"] - cmin > cfg.gain * cmin)
     corrections = np.zeros((cam0.height, cam0.width, 2))
     corrections[by0:by1, bx0:bx1][accept] = field["flow"][accept]
-    info = {"dense": {"cell_px": p["cell"], "max_offset_px": p["R"], "jumps": list(p["jumps"]),
+    info = {"dense": {"cell_px": p["cell"], "max_offset_px": p["R"] - 1, "jumps": list(p["jumps"]),
                       "search_radii": list(p["searches"]), "init_noise_px": p["init"], "roi_xyxy": [x0, y0, x1, y1],
                       "cost": field["cost"], "refit": passes, "accepted_fraction": float(accept.sum() / roi.sum()),
                       "median_accepted_offset_px": float(np.median(np.linalg.norm(field["flow"][accept], axis=1)))
@@ -675,6 +706,7 @@ def _match(t0, t1, cam0, cam1, H, box, cfg, p, gen) -> dict:
     return {"flow": (off.to(step.dtype) + step).permute(1, 2, 0).cpu().numpy().astype(np.float64),
             "hess": hess.cpu().numpy().astype(np.float64), "cmin": cmin.cpu().numpy().astype(np.float64),
             "lam_min": lam_min.cpu().numpy().astype(np.float64), "known": known,
+            "c_zero": cost(cost.encode(torch.zeros_like(off))[None])[0].cpu().numpy().astype(np.float64),
             "cost": "volume" if cost.volume is not None else "direct"}
 
 

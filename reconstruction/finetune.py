@@ -81,7 +81,7 @@ import torch
 from .network import AcquisitionNet
 
 __all__ = ["FinetuneConfig", "FinetuneResult", "EarlyStopRule", "EARLY_STOP", "SOURCES", "PASSES", "finetune",
-           "simulate_lines", "grey_to_rgb"]
+           "simulate_lines", "decode_rgb", "grey_to_rgb"]
 
 PASSES = ("pass0", "pass1", "pass2", "pass3")
 CHANNELS = "RGB"
@@ -320,6 +320,22 @@ def simulate_lines(model, latent72, line_weights, batch: int | None = None) -> n
     with _frozen(model), torch.no_grad():
         for i in range(0, n, max(step, 1)):
             out[i:i + step] = _sim_rgb(model, x[i:i + step].to(dev), w_lkc, ad).cpu().numpy()
+    return out
+
+
+def decode_rgb(model, latent72, batch: int = 65536) -> np.ndarray:
+    """(N, L_upper, 3) float32 RGB lumitexels (network units) of RGB latents (N, 3 ad + sd): channel c
+    decodes (a_c, s) (reference §3.3), on the model's device, in eval mode, `batch` texels at a time."""
+    ad, sd, num_leds = _check_model(model)
+    x = _as_float_tensor("latent72", latent72)
+    if x.ndim != 2 or x.shape[1] != 3 * ad + sd:
+        raise ValueError(f"latent72 must have shape (N, {3 * ad + sd}), got {tuple(x.shape)}")
+    _check_finite("latent72", x)
+    dev = _model_device(model)
+    out = np.empty((x.shape[0], num_leds, 3), dtype=np.float32)
+    with _frozen(model), torch.no_grad():
+        for i in range(0, x.shape[0], batch):
+            out[i:i + batch] = _decode_rgb(model, x[i:i + batch].to(dev), ad).permute(1, 2, 0).cpu().numpy()
     return out
 
 

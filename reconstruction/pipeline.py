@@ -95,7 +95,7 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
 
     from .alignment import align_views
     from .extraction import UNIFORM, extract, read_manifest, read_photo, texture_grid
-    from .finetune import finetune
+    from .finetune import decode_rgb, finetune
     from .fitting import fit_ggx, to_maps
     from .latents import check_patterns, decode, write_latent_exr
 
@@ -143,8 +143,9 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
     _save_npz(out / "latent_passes.npz", **ft.passes)
 
     t = stage("fitting")
-    lumi = _decoded_rgb(model, ft.latent, config.device)
-    fit = fit_ggx(rig, grid.positions(rig), lumi, lines=meas.lines, line_weights=meas.line_weights,
+    lumi = decode_rgb(model, ft.latent)
+    keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
+    fit = fit_ggx(rig, grid.positions(rig), lumi, lines=meas.lines[:, keep], line_weights=meas.line_weights[keep],
                   grid_shape=grid.shape, config=config.fit)
     timings["fitting_s"] = time.perf_counter() - t
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
@@ -159,16 +160,6 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
                "alignment": _jsonable(alignment.info)}
     write_bytes_atomic(out / "reconstruction.json", json.dumps(summary, indent=1).encode())
     return Reconstruction(out, grid, meas, latent, maps, hold, timings, alignment, model)
-
-
-def _decoded_rgb(model, latent72: np.ndarray, device) -> np.ndarray:
-    """(N, L, 3) RGB lumitexels (network units) of 72-D latents: channel c decodes (a_c, s) (reference §3.3)."""
-    import torch
-
-    z = torch.from_numpy(np.ascontiguousarray(latent72, dtype=np.float32)).to(device)
-    a, s = z[:, :24].reshape(len(z), 3, 8), z[:, 24:]
-    with torch.no_grad():
-        return torch.stack([model.decode_lumitexel(a[:, c], s) for c in range(3)], dim=2).cpu().numpy()
 
 
 def _with_holdout(cfg, hold: int, device):

@@ -167,6 +167,10 @@ def run_bench(args) -> dict:
                                not args.no_compile)
     if args.bench_command == "capture":
         return bench_capture(args.rig, args.device, args.sample, args.resolution, args.hdr_photos)
+    if args.bench_command == "reconstruct":
+        from reconstruction.bench import bench_reconstruct
+
+        return bench_reconstruct(args.rig, args.device, args.texels, args.network)
     raise ValueError(f"unknown benchmark {args.bench_command!r}")
 
 

@@ -283,6 +283,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resolution", type=int, default=1024)
     s.add_argument("--hdr-photos", type=int, default=4, help="photos whose HDR merge is timed")
     s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("reconstruct", help="seconds of decode, fine-tuning and fitting, extrapolated to 1024^2")
+    s.add_argument("--rig", default="paper")
+    s.add_argument("--device", default="cpu")
+    s.add_argument("--texels", type=int, default=16384)
+    s.add_argument("--network", help="a `hemicube train` run folder (default: shipped, else untrained)")
+    s.set_defaults(func=cmd_bench)
     return p
 
 

@@ -1,0 +1,119 @@
+"""`hemicube bench reconstruct`: seconds of the per-texel stages (decode, fine-tuning, GGX fitting) on
+synthetic texels of a rig, extrapolated to a 1024^2 sample, with the reference's batching as the baseline.
+
+The texels are drawn from the training distribution (reconstruction.data.sample_parameters, seeded); their
+learned measurements and line measurements are rendered by the forward model, exactly (no photo noise).
+The network is the rig's shipped one, a `hemicube train` run (--network), or else a seeded untrained network
+of the rig's size: speed does not depend on the weights, accuracy does, so accuracy is not reported here
+(`hemicube validate` scores it). Fine-tuning runs the paper's fixed iteration counts (100/50/200) so that the
+work per texel is the same whatever the data; the baseline is the same passes in batches of 100 texels
+(the released code's batching, reference §4) on a subset, per texel.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+SAMPLE_TEXELS = 1024 * 1024  # the paper's texture size (reference §6.1)
+
+
+def _sync(device: str) -> None:
+    import torch
+
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def _texels(rig, model, n: int, seed: int, device: str):
+    """Learned (n, 2, K) and line (n, 64, 3) measurements and positions of n synthetic texels."""
+    import torch
+
+    import twin
+    from twin.pattern_sets import linear_lights
+
+    from .data import LUMITEXEL_SCALE, SamplingConfig, _generator, sample_parameters, synthesize
+
+    p = sample_parameters(n, SamplingConfig(), rig, _generator(seed, "bench", 0))
+    upper = np.flatnonzero(~np.asarray(rig.is_bottom))
+    W = linear_lights(rig).weights.astype(np.float32)
+    learned, lines, exact = [], [], []
+    with torch.no_grad():
+        for i in range(0, n, 8192):
+            q = {k: v[i:i + 8192] for k, v in p.items()}
+            views = torch.stack([synthesize(rig, q, c, device) for c in list(rig.cameras)[:2]], dim=1)
+            learned.append(model.measure(views).cpu().numpy())
+            args = {k: v.numpy() for k, v in q.items()}
+            lines.append(twin.measurements(rig, **args, patterns=W, transparency=np.zeros(len(args["position"])),
+                                           camera=next(iter(rig.cameras)), visibility=True,
+                                           device=_wp(device)) * np.float32(LUMITEXEL_SCALE))
+            exact.append(twin.lumitexels(rig, **args, transparency=np.zeros(len(args["position"])),
+                                         camera=next(iter(rig.cameras)), visibility=True,
+                                         device=_wp(device))[:, upper] * np.float32(LUMITEXEL_SCALE))
+    return (np.concatenate(learned), np.concatenate(lines), p["position"].numpy(), W[:, upper],
+            np.concatenate(exact))
+
+
+def _wp(device: str) -> str:
+    return "cuda:0" if str(device) == "cuda" else str(device)
+
+
+def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=None, seed=0,
+                      baseline_texels=1000) -> dict:
+    import torch
+
+    import twin
+
+    from .finetune import FinetuneConfig, decode_rgb, finetune
+    from .fitting import FitConfig, fit_ggx
+    from .latents import decode
+    from .network import AcquisitionNet, count_parameters
+    from .pipeline import load_network
+    from .train import TrainConfig
+
+    rig = twin.load_rig(rig_name)
+    dev = "cuda:0" if device == "cuda" else device
+    if network is not None:
+        model, source = load_network(network, rig, dev), str(network)
+    else:
+        try:
+            model, source = load_network("pretrained", rig, dev), "shipped"
+        except ValueError:
+            torch.manual_seed(seed)
+            upper = int((~np.asarray(rig.is_bottom)).sum())
+            model, source = AcquisitionNet(TrainConfig(rig=rig_name).network_config(upper)).to(dev).eval(), "untrained"
+    learned, lines, pos, W, exact = _texels(rig, model, texels, seed, dev)
+
+    t = time.perf_counter()
+    z = decode(model, learned, device=dev)
+    _sync(dev)
+    t_decode = time.perf_counter() - t
+    cfg = FinetuneConfig(source="paper", holdout=(0,), device=dev)
+    t = time.perf_counter()
+    ft = finetune(model, z, lines, W, cfg)
+    _sync(dev)
+    t_finetune = time.perf_counter() - t
+    nb = min(baseline_texels, texels)
+    t = time.perf_counter()
+    finetune(model, z[:nb], lines[:nb], W, FinetuneConfig(source="paper", holdout=(0,), device=dev, batch=100))
+    _sync(dev)
+    t_finetune_ref = time.perf_counter() - t
+    t = time.perf_counter()
+    # an untrained decoder's output is no lumitexel (exp overflows): then fit the texels' exact lumitexels,
+    # the same work per texel
+    lumi = exact if source == "untrained" else decode_rgb(model, ft.latent)
+    fit = fit_ggx(rig, pos, lumi, lines=lines, line_weights=W, config=FitConfig(device=_wp(dev)))
+    _sync(dev)
+    t_fit = time.perf_counter() - t
+    scale = SAMPLE_TEXELS / texels
+    per = {"decode": t_decode, "finetune": t_finetune, "fitting": t_fit}
+    return {
+        "bench": "reconstruct", "rig": rig.name, "device": torch.cuda.get_device_name(0) if dev.startswith("cuda")
+        else "cpu", "texels": texels, "network": source, "fitting_target": "exact lumitexels" if source == "untrained" else "decoded", "network_parameters": count_parameters(model),
+        "finetune_iterations": ft.iterations, "fit_info": {k: v for k, v in fit.info.items()
+                                                          if isinstance(v, (int, float, str))},
+        "seconds": per, "seconds_per_1024sq_extrapolated": {k: v * scale for k, v in per.items()},
+        "total_per_1024sq_extrapolated_s": sum(per.values()) * scale,
+        "baseline_finetune_batch100": {"texels": nb, "seconds": t_finetune_ref,
+                                       "per_texel_ratio_vs_batched": (t_finetune_ref / nb) / (t_finetune / texels)},
+    }
