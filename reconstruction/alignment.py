@@ -53,7 +53,7 @@ for images of the calibration's half resolution, 2664 px wide (reference §1.5, 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace, field
 
 import numpy as np
 import torch
@@ -63,7 +63,8 @@ __all__ = ["AlignConfig", "Alignment", "AlignmentError", "align_views", "warp_to
            "tone_map", "dense_sift", "patchmatch", "REFERENCE_WIDTH"]
 
 REFERENCE_WIDTH = 2664  # px: width of the primary camera's calibration (half sensor resolution, reference §1.5)
-COARSE_METHODS = ("sift", "markers", "calibrated")
+COARSE_METHODS = ("auto", "sift", "markers", "calibrated")
+AUTO_ORDER = ("sift", "markers", "calibrated")  # "auto": the first that works on these photos
 
 
 class AlignmentError(ValueError):
@@ -75,7 +76,9 @@ class AlignConfig:
     """Settings of `align_views`. Pixel constants marked "reference px" are in pixels of a 2664-px-wide image
     and are scaled with the image width (module docstring)."""
 
-    coarse: str = "sift"  # "sift" (reference §6.1), "markers" (paper §8: ARTags), "calibrated" (ours)
+    coarse: str = "auto"  # "sift" (reference §6.1), "markers" (paper §8: ARTags), "calibrated" (ours), or
+    #                       "auto" (ours): sift, else markers, else calibrated; a smooth sample under uniform
+    #                       light can leave SIFT with too few matches (brushed_metal at 64^2: 4 matches)
     dense: bool = True  # dense SIFT + PatchMatch refinement (reference §6.2, paper §8)
     # --- coarse: SIFT (reference §6.1 step 5) ---
     ratio: float = 0.5  # Lowe's ratio test (reference)
@@ -313,6 +316,14 @@ def _aruco_parameters():
 
 
 def _coarse(g0, g1, cam0, cam1, rig, cfg, scale):
+    if cfg.coarse == "auto":
+        failed = {}
+        for method in AUTO_ORDER:
+            try:
+                H, info = _coarse(g0, g1, cam0, cam1, rig, replace(cfg, coarse=method), scale)
+                return H, {**info, "coarse_method": method, "coarse_failed": failed}
+            except AlignmentError as e:
+                failed[method] = str(e)
     if cfg.coarse == "sift":
         return _sift_homography(g0, g1, cam0, cam1, cfg, scale)
     if cfg.coarse == "markers":
@@ -624,7 +635,8 @@ def align_views(primary: np.ndarray, secondary: np.ndarray, rig, config: AlignCo
     H, coarse_info = _coarse(t0.mean(2), t1.mean(2), cam0, cam1, rig, cfg, scale)
     if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
         raise AlignmentError(f"{cfg.coarse}: degenerate homography {H.tolist()}")
-    info = {"method": cfg.coarse, **coarse_info, "scale": scale, "coarse_homography": H.tolist(),
+    method = coarse_info.pop("coarse_method", cfg.coarse)
+    info = {"method": method, **coarse_info, "scale": scale, "coarse_homography": H.tolist(),
             "coarse_s": time.perf_counter() - t_start}
     H0, W0 = cam0.height, cam0.width
     yy, xx = np.mgrid[0:H0, 0:W0]

@@ -78,7 +78,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .network import AcquisitionNet
+from .network import AcquisitionNet, _is_int, _is_real
 
 __all__ = ["FinetuneConfig", "FinetuneResult", "EarlyStopRule", "EARLY_STOP", "SOURCES", "PASSES", "finetune",
            "simulate_lines", "decode_rgb", "grey_to_rgb"]
@@ -87,14 +87,6 @@ PASSES = ("pass0", "pass1", "pass2", "pass3")
 CHANNELS = "RGB"
 # iteration counts per pass (1, 2, 3): the released scripts' caps (reference §4) and the paper's counts (§7.1)
 SOURCES = {"code": (500, 50, 500), "paper": (100, 50, 200)}
-
-
-def _is_int(x) -> bool:
-    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
-
-
-def _is_real(x) -> bool:
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
@@ -462,18 +454,21 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
     seconds = {}
     problems = [_Problem(model, y[sl].to(dev), w_dev, ad, eps) for sl in slices]
 
+    def track(name, x0, energy, i):
+        """One Adam run of pass `name` (index i) from x0; records the objective, history and iterations."""
+        x, hist, done = _adam_run(x0, energy, caps[i], lrs[i], rules[i])
+        with torch.no_grad():
+            before[name] += float(energy(x0))
+            after[name] += float(energy(x))
+        history[name].append(hist)
+        iterations[name].append(done)
+        return x.cpu()
+
     with _frozen(model), torch.enable_grad():
         # pass 1: the grey 56-D latent against the mean over RGB, W[..., 0]
         t0 = time.perf_counter()
         for sl, pb in zip(slices, problems):
-            x0 = z[sl].to(dev)
-            x, hist, done = _adam_run(x0, pb.e1, caps[0], lrs[0], rules[0])
-            with torch.no_grad():
-                before["pass1"] += float(pb.e1(x0))
-                after["pass1"] += float(pb.e1(x))
-            grey1[sl] = x.cpu()
-            history["pass1"].append(hist)
-            iterations["pass1"].append(done)
+            grey1[sl] = track("pass1", z[sl].to(dev), pb.e1, 0)
         _sync(dev)
         seconds["pass1"] = time.perf_counter() - t0
         passes["pass1"] = torch.cat([grey1[:, :ad]] * 3 + [grey1[:, ad:]], dim=1)
@@ -483,14 +478,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
         for sl, pb in zip(slices, problems):
             a1, s1 = grey1[sl, :ad].to(dev), grey1[sl, ad:].to(dev)
             for c in range(3):
-                energy = (lambda a, c=c: pb.e2(a, s1, c))
-                a, hist, done = _adam_run(a1, energy, caps[1], lrs[1], rules[1])
-                with torch.no_grad():
-                    before["pass2"] += float(energy(a1))
-                    after["pass2"] += float(energy(a))
-                rgb2[sl, c * ad:(c + 1) * ad] = a.cpu()
-                history["pass2"].append(hist)
-                iterations["pass2"].append(done)
+                rgb2[sl, c * ad:(c + 1) * ad] = track("pass2", a1, (lambda a, c=c: pb.e2(a, s1, c)), 1)
         rgb2[:, 3 * ad:] = grey1[:, ad:]
         _sync(dev)
         seconds["pass2"] = time.perf_counter() - t0
@@ -499,14 +487,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
         # pass 3: the joint 72-D latent against the RGB photos, W[..., c]
         t0 = time.perf_counter()
         for sl, pb in zip(slices, problems):
-            x0 = rgb2[sl].to(dev)
-            x, hist, done = _adam_run(x0, pb.e3, caps[2], lrs[2], rules[2])
-            with torch.no_grad():
-                before["pass3"] += float(pb.e3(x0))
-                after["pass3"] += float(pb.e3(x))
-            rgb3[sl] = x.cpu()
-            history["pass3"].append(hist)
-            iterations["pass3"].append(done)
+            rgb3[sl] = track("pass3", rgb2[sl].to(dev), pb.e3, 2)
         _sync(dev)
         seconds["pass3"] = time.perf_counter() - t0
         passes["pass3"] = rgb3

@@ -67,6 +67,18 @@ def mini():
     return twin.load_rig("mini")
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Small torch problems: torch's OpenMP threads only add synchronisation, which on a shared 2-core
+    machine (CI) costs up to 10x. Restored afterwards. Use with pytestmark = usefixtures("one_torch_thread")."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="session")
 def validate_dir(tmp_path_factory):
     """A `hemicube validate` output folder whose capture (mini rig, ramps, seed 1: the main job's defaults)

@@ -18,14 +18,7 @@ from twin.camera import Camera
 GOAL_PX = 0.5  # issue #6: median alignment error <= 0.5 px
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """These are small problems (~40k pixels): torch's two OpenMP threads only add synchronisation, which on a
-    shared 2-core machine costs 10x. Restored afterwards."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
@@ -214,10 +207,12 @@ def test_bad_input_is_refused_clearly(mini_uniform):
         align_views(p, np.zeros((192, 222, 4), np.float32), rig)
     flat = np.ones_like(p)
     with pytest.raises(ValueError, match="sift: too few keypoints"):
-        align_views(flat, flat, rig)
+        align_views(flat, flat, rig, AlignConfig(coarse="sift"))
+    auto = align_views(flat, flat, rig, AlignConfig(dense=False))  # "auto" falls back, saying why
+    assert auto.info["method"] == "calibrated" and set(auto.info["coarse_failed"]) == {"sift", "markers"}
     xx, yy = _grid(160, 120)  # two unrelated textures: keypoints, but no matches that pass the ratio test
     with pytest.raises(ValueError, match=r"sift: only \d+ matches pass the ratio test 0.5 \(need >= 12\)"):
-        align_views(_texture(xx, yy, seed=1), _texture(xx, yy, seed=7), _stub_rig(160, 120))
+        align_views(_texture(xx, yy, seed=1), _texture(xx, yy, seed=7), _stub_rig(160, 120), AlignConfig(coarse="sift"))
     al, _ = _align(mini_uniform, coarse="calibrated", dense=False)
     with pytest.raises(ValueError, match="pixel_texel_primary must be"):
         alignment_error(al, truth["primary"][:, :100], truth["secondary"])

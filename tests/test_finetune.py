@@ -18,13 +18,7 @@ L, K, N = 64, 16, 24
 EPS = 1e-6
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # small matrices: one thread is fastest on the shared 2-core CI machines
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -69,14 +69,7 @@ def _targets(rig, p):
     return m.astype(np.float32), np.einsum("plc,klc->pkc", m, w).astype(np.float32), w
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    """These fits are thousands of tiny torch ops: with two threads on a shared 2-core runner, OpenMP's
-    waiting made the neural test 8x slower (measured); one thread is the fastest here. Restored after."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

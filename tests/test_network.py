@@ -18,13 +18,7 @@ MINI_UPPER = 396  # the mini rig's upper LEDs
 MINI_ALL = 460
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny matmuls: one thread is fastest and avoids spin-waiting when the CPU is shared."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _quiet(num_leds, **kw):

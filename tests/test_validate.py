@@ -19,7 +19,9 @@ def test_main_job_passes_its_thresholds(validate_dir, capsys):
     out = capsys.readouterr().out
     assert "PASS" in out and "FAIL" not in out, out
     assert rc == 0, out
-    metrics = json.loads((validate_dir / "report" / "metrics.json").read_text())
+    doc = json.loads((validate_dir / "report" / "metrics.json").read_text())
+    metrics = doc["metrics"]
+    assert doc["passed"] is True and len(doc["checks"]) == len(thresholds_for("mini"))
     report = (validate_dir / "report" / "report.md").read_text()
     rows = thresholds_for("mini")
     assert len(rows) >= 6 and all(r.metric.split(".")[0] in metrics for r in rows)
