@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -112,7 +112,8 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
         return time.perf_counter()
 
     t = stage("alignment")
-    alignment = align_views(read_photo(capture, UNIFORM, 0), read_photo(capture, UNIFORM, 1), rig, config.align)
+    alignment = align_views(read_photo(capture, UNIFORM, 0), read_photo(capture, UNIFORM, 1), rig,
+                            replace(config.align, device=config.device))
     timings["alignment_s"] = time.perf_counter() - t
     _save_npz(out / "alignment.npz", map=alignment.map, homography=alignment.homography)
 
@@ -146,7 +147,7 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
     lumi = decode_rgb(model, ft.latent)
     keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=meas.lines[:, keep], line_weights=meas.line_weights[keep],
-                  grid_shape=grid.shape, config=config.fit)
+                  grid_shape=grid.shape, config=replace(config.fit, device=config.device))
     timings["fitting_s"] = time.perf_counter() - t
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
                    name=f"reconstruction of {doc.get('sample', 'a capture')}")
@@ -163,8 +164,6 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
 
 
 def _with_holdout(cfg, hold: int, device):
-    from dataclasses import replace
-
     return replace(cfg, holdout=tuple(sorted(set(cfg.holdout) | {hold})), device=device)
 
 

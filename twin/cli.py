@@ -218,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--resolution", type=int, default=128, help="texture resolution of a built-in sample")
     s.add_argument("--device", default="cpu")
-    s.add_argument("--patterns", help="pattern file with the 64 learned frames (default: a seeded placeholder)")
+    s.add_argument("--patterns", help="pattern file with the 64 learned frames (default: the shipped network's patterns for the rig, else a seeded placeholder)")
     s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_capture)
