@@ -61,7 +61,7 @@ resampled by twin.samples, primary view; "exact" = the truth's lumitexels and li
 shipped network's RGB decode of the truth (grey shape latent from both views, per-channel albedo latents;
 median error 27% per lumitexel, no fine-tuning) with the exact lines x (1 + 2% Gaussian noise). Pipeline:
 a `hemicube capture` of ramps through reconstruction.pipeline (48 x 48, fine-tuned latents, extracted
-lines without the held-out one), scored by reconstruction.report.map_errors. Median (90th percentile):
+lines without the held-out one), scored by reconstruction.metrics.map_errors. Median (90th percentile):
 normal (deg); alpha (relative; synthetic: |log alpha| of sorted pairs, pipeline: alpha_x); rho_s
 (relative); tangent (deg, mod pi, where alpha ratio >= 1.5); CPU seconds.
                               normal        alpha          rho_s   tangent  CPU s

@@ -1,13 +1,13 @@
 """Scoring a reconstruction against the twin's ground truth (issue "reconstruction pipeline", item 6).
 
     metrics, panels = evaluate(capture, recon, rig)
-    checks = check(metrics, THRESHOLDS["mini"])            # reconstruction.report
+    checks = check(metrics, THRESHOLDS["mini"])            # reconstruction.metrics
     write_report(out, title=..., metrics=metrics, checks=checks, panels=panels, notes=...)
 
 What is compared
 * **alignment**: the alignment map against the capture's pixel <-> texel sidecars (secondary pixels);
 * **maps**: the fitted maps against the true maps resampled onto the reconstruction's texture grid
-  (normal and tangent angles, |log alpha|, relative rho_d and rho_s; reconstruction.report.map_errors);
+  (normal and tangent angles, |log alpha|, relative rho_d and rho_s; reconstruction.metrics.map_errors);
 * **renders under the held-out line** (the photo left out of fine-tuning), on the texture grid:
   the photo's texel values against (a) the latent render (decoder x line pattern, reference §6.4's
   "latent" image), (b) the fitted maps rendered by the forward model, and (c) the TRUE maps rendered the
@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .report import RenderPanel, Threshold, image_scores, map_errors, map_panels, resample_maps, truth_coverage
+from .metrics import Threshold, image_scores, map_errors, resample_maps, truth_coverage
+from .report import RenderPanel, map_panels
 
 # Thresholds of the CI configuration (mini rig, ramps, seed 1, 48^2 texels, the shipped mini network), set
 # once (2026-11-22) from its measured values (in brackets) with a stated margin, and not to be loosened to

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import twin
-from reconstruction.alignment import (AlignConfig, AlignmentError, _PatchCost, align_views, alignment_error,
-                                      patchmatch, warp_to_primary)
+from reconstruction.alignment import AlignConfig, AlignmentError, align_views, alignment_error, warp_to_primary
+from reconstruction.patchmatch import PatchCost, patchmatch
 from twin.camera import Camera
 
 GOAL_PX = 0.5  # issue #6: median alignment error <= 0.5 px
@@ -182,7 +182,7 @@ def test_deterministic_for_a_seed():
 def test_cost_volume_and_direct_costs_agree():
     g = torch.Generator().manual_seed(0)
     src, tgt = torch.rand(16, 20, 24, generator=g), torch.rand(16, 20, 24, generator=g)
-    vol, direct = _PatchCost(src, tgt, 5, 3, 1e9), _PatchCost(src, tgt, 5, 3, 0)
+    vol, direct = PatchCost(src, tgt, 5, 3, 1e9), PatchCost(src, tgt, 5, 3, 0)
     assert vol.volume is not None and direct.volume is None
     idx = torch.randint(0, vol.sentinel + 1, (4, 20, 24), generator=g)  # includes the "no candidate" sentinel
     a, b = vol(idx), direct(idx)

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from reconstruction.report import (
-    Panel, RenderPanel, Threshold, check, flatten_metrics, format_table, image_scores, map_errors, map_panels,
-    render_panel, resample_maps, truth_coverage, write_report,
+from reconstruction.metrics import (
+    Threshold, check, flatten_metrics, format_table, image_scores, map_errors, resample_maps, truth_coverage,
 )
+from reconstruction.report import Panel, RenderPanel, map_panels, render_panel, write_report
 from twin.samples import canonical_anisotropy, load_sample
 
 RES = 32

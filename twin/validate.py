@@ -124,7 +124,8 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int,
     from dataclasses import replace
 
     from reconstruction.pipeline import ReconstructConfig, reconstruct
-    from reconstruction.report import check, write_report
+    from reconstruction.metrics import check
+    from reconstruction.report import write_report
     from reconstruction.validation import evaluate, thresholds_for
 
     from .capture import capture
@@ -151,7 +152,7 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
     docstring). Exit code 0 when every check and every threshold passes."""
     import twin
     from reconstruction.pipeline import ReconstructConfig
-    from reconstruction.report import format_table
+    from reconstruction.metrics import format_table
 
     rig_obj = twin.load_rig(rig)
     ref = reference_dir()
