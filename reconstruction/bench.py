@@ -18,15 +18,9 @@ import numpy as np
 SAMPLE_TEXELS = 1024 * 1024  # the paper's texture size (reference §6.1)
 
 
-def _sync(device: str) -> None:
-    import torch
-
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def _texels(rig, model, n: int, seed: int, device: str):
-    """Learned (n, 2, K) and line (n, 64, 3) measurements and positions of n synthetic texels."""
+def _texels(rig, model, n: int, seed: int, device: str, exact: bool):
+    """Learned (n, 2, K) and line (n, 64, 3) measurements, positions, the upper-LED line weights and, when
+    `exact`, the exact RGB lumitexels (n, L_upper, 3) of n synthetic texels, in network units."""
     import torch
 
     import twin
@@ -37,25 +31,22 @@ def _texels(rig, model, n: int, seed: int, device: str):
     p = sample_parameters(n, SamplingConfig(), rig, _generator(seed, "bench", 0))
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
     W = linear_lights(rig).weights.astype(np.float32)
-    learned, lines, exact = [], [], []
+    learned, lines, lumi = [], [], []
+    kw = dict(camera=next(iter(rig.cameras)), visibility=True, device=device)
     with torch.no_grad():
         for i in range(0, n, 8192):
             q = {k: v[i:i + 8192] for k, v in p.items()}
             views = torch.stack([synthesize(rig, q, c, device) for c in list(rig.cameras)[:2]], dim=1)
             learned.append(model.measure(views).cpu().numpy())
             args = {k: v.numpy() for k, v in q.items()}
-            lines.append(twin.measurements(rig, **args, patterns=W, transparency=np.zeros(len(args["position"])),
-                                           camera=next(iter(rig.cameras)), visibility=True,
-                                           device=_wp(device)) * np.float32(LUMITEXEL_SCALE))
-            exact.append(twin.lumitexels(rig, **args, transparency=np.zeros(len(args["position"])),
-                                         camera=next(iter(rig.cameras)), visibility=True,
-                                         device=_wp(device))[:, upper] * np.float32(LUMITEXEL_SCALE))
+            zero = np.zeros(len(args["position"]))
+            lines.append(twin.measurements(rig, **args, patterns=W, transparency=zero, **kw)
+                         * np.float32(LUMITEXEL_SCALE))
+            if exact:
+                lumi.append(twin.lumitexels(rig, **args, transparency=zero, **kw)[:, upper]
+                            * np.float32(LUMITEXEL_SCALE))
     return (np.concatenate(learned), np.concatenate(lines), p["position"].numpy(), W[:, upper],
-            np.concatenate(exact))
-
-
-def _wp(device: str) -> str:
-    return "cuda:0" if str(device) == "cuda" else str(device)
+            np.concatenate(lumi) if exact else None)
 
 
 def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=None, seed=0,
@@ -64,15 +55,19 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
 
     import twin
 
-    from .finetune import FinetuneConfig, decode_rgb, finetune
+    from .data import _wp_device
+    from .finetune import FinetuneConfig, _sync, decode_rgb, finetune
     from .fitting import FitConfig, fit_ggx
     from .latents import decode
     from .network import AcquisitionNet, count_parameters
     from .pipeline import load_network
     from .train import TrainConfig
 
+    if isinstance(texels, bool) or not isinstance(texels, int) or texels < 1:
+        raise ValueError(f"texels must be a positive integer, got {texels!r}")
     rig = twin.load_rig(rig_name)
-    dev = "cuda:0" if device == "cuda" else device
+    dev = _wp_device(device)  # "cpu" or "cuda:N": one name for torch and Warp
+    sync = lambda: _sync(torch.device(dev))  # noqa: E731  (timings must include the queued GPU work)
     if network is not None:
         model, source = load_network(network, rig, dev), str(network)
     else:
@@ -82,34 +77,36 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
             torch.manual_seed(seed)
             upper = int((~np.asarray(rig.is_bottom)).sum())
             model, source = AcquisitionNet(TrainConfig(rig=rig_name).network_config(upper)).to(dev).eval(), "untrained"
-    learned, lines, pos, W, exact = _texels(rig, model, texels, seed, dev)
+    # an untrained decoder's output is no lumitexel (exp overflows): the fit then takes the texels' exact
+    # lumitexels, the same work per texel
+    learned, lines, pos, W, exact = _texels(rig, model, texels, seed, dev, exact=source == "untrained")
 
     t = time.perf_counter()
     z = decode(model, learned, device=dev)
-    _sync(dev)
+    sync()
     t_decode = time.perf_counter() - t
     cfg = FinetuneConfig(source="paper", holdout=(0,), device=dev)
     t = time.perf_counter()
     ft = finetune(model, z, lines, W, cfg)
-    _sync(dev)
+    sync()
     t_finetune = time.perf_counter() - t
     nb = min(baseline_texels, texels)
     t = time.perf_counter()
     finetune(model, z[:nb], lines[:nb], W, FinetuneConfig(source="paper", holdout=(0,), device=dev, batch=100))
-    _sync(dev)
+    sync()
     t_finetune_ref = time.perf_counter() - t
     t = time.perf_counter()
-    # an untrained decoder's output is no lumitexel (exp overflows): then fit the texels' exact lumitexels,
-    # the same work per texel
-    lumi = exact if source == "untrained" else decode_rgb(model, ft.latent)
-    fit = fit_ggx(rig, pos, lumi, lines=lines, line_weights=W, config=FitConfig(device=_wp(dev)))
-    _sync(dev)
+    lumi = exact if exact is not None else decode_rgb(model, ft.latent)
+    fit = fit_ggx(rig, pos, lumi, lines=lines, line_weights=W, config=FitConfig(device=dev))
+    sync()
     t_fit = time.perf_counter() - t
     scale = SAMPLE_TEXELS / texels
     per = {"decode": t_decode, "finetune": t_finetune, "fitting": t_fit}
     return {
         "bench": "reconstruct", "rig": rig.name, "device": torch.cuda.get_device_name(0) if dev.startswith("cuda")
-        else "cpu", "texels": texels, "network": source, "fitting_target": "exact lumitexels" if source == "untrained" else "decoded", "network_parameters": count_parameters(model),
+        else "cpu", "texels": texels, "network": source,
+        "fitting_target": "decoded" if exact is None else "exact lumitexels",
+        "network_parameters": count_parameters(model),
         "finetune_iterations": ft.iterations, "fit_info": {k: v for k, v in fit.info.items()
                                                           if isinstance(v, (int, float, str))},
         "seconds": per, "seconds_per_1024sq_extrapolated": {k: v * scale for k, v in per.items()},

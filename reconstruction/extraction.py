@@ -149,23 +149,25 @@ def read_photo(capture, index: int, camera_index: int) -> np.ndarray:
     return img
 
 
-def corrected(img: np.ndarray, camera) -> np.ndarray:
-    """Step 1: flat field and colour matrix, camera RGB -> LED-RGB radiance, clamped at >= 0 (reference §6.3
-    step 6: read noise makes dark pixels slightly negative; no light is)."""
-    from calibration.colour_matrix import apply_colour_matrix, colour_matrix
+def calibration_of(camera) -> tuple[np.ndarray, np.ndarray]:
+    """(flat field (H, W, 1), colour matrix (3, 3)) of a camera: computed once per camera, used per photo."""
+    from calibration.colour_matrix import colour_matrix
     from calibration.flat_field import flat_field
+
+    return flat_field(camera)[..., None], colour_matrix(camera)
+
+
+def corrected(img: np.ndarray, camera, calibration=None) -> np.ndarray:
+    """Step 1: flat field and colour matrix (`calibration_of(camera)` unless given), camera RGB -> LED-RGB
+    radiance, clamped at >= 0 (reference §6.3 step 6: read noise makes dark pixels slightly negative; no
+    light is)."""
+    from calibration.colour_matrix import apply_colour_matrix
 
     if img.shape != (camera.height, camera.width, 3):
         raise ExtractionError(f"photo of camera {camera.name!r} is {img.shape}, the rig says "
                               f"({camera.height}, {camera.width}, 3)")
-    return np.maximum(apply_colour_matrix(img * flat_field(camera)[..., None], colour_matrix(camera)), 0.0)
-
-
-def _plane_hits(camera, uv: np.ndarray, plane) -> np.ndarray:
-    c = camera.centre
-    n, o = np.asarray(plane.normal, float), np.asarray(plane.origin, float)
-    d = camera.pixel_rays(uv)
-    return c + d * (((o - c) @ n) / (d @ n))[:, None]
+    flat, C = calibration if calibration is not None else calibration_of(camera)
+    return np.maximum(apply_colour_matrix(img * flat, C), 0.0)
 
 
 def detect_sample_size(capture, rig) -> float:
@@ -180,7 +182,8 @@ def detect_sample_size(capture, rig) -> float:
         raise ExtractionError(f"{capture}: no opaque sample found in the bottom-lit photos ({int(under.sum())} "
                               "pixels block the light); give the sample size explicitly (--size-mm)")
     ys, xs = np.nonzero(under)
-    p = _plane_hits(cam, np.stack([xs, ys], axis=1).astype(np.float64), rig.sample) - np.asarray(rig.sample.origin)
+    p = cam.plane_points(np.stack([xs, ys], axis=1).astype(np.float64), rig.sample.origin, rig.sample.normal)
+    p -= np.asarray(rig.sample.origin)
     u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
     lo_u, hi_u = np.percentile(u, [0.5, 99.5])  # robust to single noisy pixels
     lo_v, hi_v = np.percentile(v, [0.5, 99.5])
@@ -210,17 +213,15 @@ def _kernel_width(uv: np.ndarray, shape) -> int:
 
 
 def _sample(img: np.ndarray, uv: np.ndarray, ksize: int) -> np.ndarray:
-    """Steps 2-3: (N, C) bilinear values of img (H, W, C) at uv (N, 2), NaN outside the image."""
+    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at uv (N, 2), NaN outside the image
+    (exact weights: cv2.remap would quantise the sub-pixel position to 1/32 px)."""
     import cv2
+
+    from .alignment import bilinear
 
     if ksize:
         img = cv2.GaussianBlur(img, (ksize, ksize), 0, borderType=cv2.BORDER_REFLECT)
-    m = np.ascontiguousarray(uv.astype(np.float32).reshape(-1, 1, 2))
-    bad = ~np.isfinite(m).all(axis=2)
-    m[bad] = -10.0  # off the image: the constant border below makes it NaN
-    out = cv2.remap(img.astype(np.float32), m, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=(np.nan,) * 4)
-    return out.reshape(len(uv), -1)
+    return bilinear(img, uv[:, 0], uv[:, 1]).astype(np.float32)
 
 
 def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
@@ -246,8 +247,10 @@ def extract(capture, rig, grid: TextureGrid, alignment, *, progress: bool = Fals
     k0, k1 = _kernel_width(uv0, grid.shape), _kernel_width(uv1, grid.shape)
     scale = np.float32(LUMITEXEL_SCALE)
 
+    calibrations = [calibration_of(c) for c in cams]
+
     def photo(k, c):
-        return corrected(read_photo(capture, k, c), cams[c])
+        return corrected(read_photo(capture, k, c), cams[c], calibrations[c])
 
     from tqdm import tqdm
 

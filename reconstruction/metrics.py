@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy
+from twin.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy, grid_coordinates
 
 __all__ = [
     "ANISOTROPY_RATIO", "RHO_FLOOR", "resample_maps", "truth_coverage", "map_errors", "image_scores",
@@ -78,7 +78,7 @@ def _grid_coords(truth: SVBRDFMaps, size_mm: float, resolution: int) -> tuple[np
         raise ValueError(f"size_mm must be a positive finite number of millimetres, got {size_mm!r}")
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 1:
         raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
-    x = -0.5 * size_mm + (np.arange(resolution) + 0.5) * (size_mm / resolution)
+    x, _ = grid_coordinates(size_mm, (resolution, resolution))
     h, w = truth.shape
     s = truth.size_mm
     col = (x + 0.5 * s) * (w / s) - 0.5

@@ -18,7 +18,8 @@ Output folder:
     latent_passes.npz        the latents after each fine-tuning pass (pass0 ... pass3)
     maps/                    the fitted OpenSVBRDF maps (twin.samples format: pd/ps/ax_ay/normal/tangent/
                              transparency textures, αx ≥ αy)
-Every file is written atomically; the folder is complete when reconstruction.json exists.
+The folder is written as a whole (twin.atomic.atomic_folder): a failed or killed run leaves the previous
+folder, or none, never a partial one.
 """
 from __future__ import annotations
 
@@ -56,14 +57,17 @@ class ReconstructConfig:
 @dataclass
 class Reconstruction:
     directory: Path
-    grid: object
-    measurements: object
+    measurements: object      # reconstruction.extraction.Measurements (its .grid is the texture grid)
     latent: np.ndarray        # (N, 72) final latents
     maps: object              # twin.samples.SVBRDFMaps
     holdout_line: int
     timings: dict
     alignment: object
     model: object
+
+    @property
+    def grid(self):
+        return self.measurements.grid
 
 
 def load_network(name: str, rig, device="cpu"):
@@ -90,20 +94,31 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
                 rig=None) -> Reconstruction:
     """Run the pipeline on a capture folder into `output` (module docstring)."""
     import twin
-    from twin.atomic import write_bytes_atomic
-    from twin.samples import write_maps
+    from twin.atomic import atomic_folder
 
-    from .alignment import align_views
-    from .extraction import UNIFORM, extract, read_manifest, read_photo, texture_grid
-    from .finetune import decode_rgb, finetune
-    from .fitting import fit_ggx, to_maps
-    from .latents import check_patterns, decode, write_latent_exr
+    from .extraction import read_manifest
 
     capture, out = Path(capture), Path(output)
     doc = read_manifest(capture)
     if rig is None:
         rig = twin.load_rig(capture / "rig") if (capture / "rig").is_dir() else twin.load_rig(doc["rig"])
-    out.mkdir(parents=True, exist_ok=True)
+    with atomic_folder(out, overwrite=True) as tmp:  # a failed run leaves the previous folder (or none)
+        recon = _reconstruct_into(tmp, capture, doc, rig, config, progress)
+    recon.directory = out
+    return recon
+
+
+def _reconstruct_into(out: Path, capture: Path, doc: dict, rig, config: ReconstructConfig,
+                      progress: bool) -> Reconstruction:
+    from twin.atomic import write_bytes_atomic
+    from twin.samples import write_maps
+
+    from .alignment import align_views
+    from .extraction import UNIFORM, extract, read_photo, texture_grid
+    from .finetune import decode_rgb, finetune
+    from .fitting import fit_ggx, to_maps
+    from .latents import check_patterns, decode, write_latent_exr
+
     timings: dict[str, float] = {}
 
     def stage(name):
@@ -151,7 +166,7 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
     timings["fitting_s"] = time.perf_counter() - t
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
                    name=f"reconstruction of {doc.get('sample', 'a capture')}")
-    write_maps(maps, out / "maps", overwrite=True)
+    write_maps(maps, out / "maps")
 
     summary = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "capture": str(capture),
                "rig": rig.name, "rig_digest": rig.digest(), "config": _jsonable(asdict(config)),
@@ -160,7 +175,7 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
                "finetune": {"iterations": ft.iterations, "seconds": ft.seconds},
                "alignment": _jsonable(alignment.info)}
     write_bytes_atomic(out / "reconstruction.json", json.dumps(summary, indent=1).encode())
-    return Reconstruction(out, grid, meas, latent, maps, hold, timings, alignment, model)
+    return Reconstruction(out, meas, latent, maps, hold, timings, alignment, model)
 
 
 def _with_holdout(cfg, hold: int, device):

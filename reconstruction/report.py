@@ -7,8 +7,9 @@ reconstruction.metrics.
 
 Report folder (`write_report`): metrics.json ({"title", "passed", "checks", "metrics", "notes"}; NaN is
 written as null, ±inf as the strings "inf" / "-inf", so the file is strict JSON), report.md (result,
-table, notes, images, every metric), images/<panel>.png. Every file is written atomically
-(twin.atomic): a reader sees the old file or the complete new one, and no temporary file stays behind.
+table, notes, images, every metric), images/<panel>.png. The folder is written as a whole
+(twin.atomic.atomic_folder): a reader sees the previous report or the complete new one, never a mix, and a
+failed run leaves no temporary file behind.
 
 Panels. `Panel(name, truth, recon, kind)` is one PNG "truth | reconstruction | |error|", one row per
 channel for the colour-mapped kinds, with colour bars; NaN pixels are "no data" and drawn grey (e.g.
@@ -36,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.atomic import atomic_path, write_bytes_atomic
+from twin.atomic import atomic_folder, atomic_path, write_bytes_atomic
 from twin.samples import SVBRDFMaps, canonical_anisotropy
 
 from .metrics import (ANISOTROPY_RATIO, _angle_deg, _axis_angle_deg, _check_mask, _fmt_any, _fmt_value,
@@ -344,8 +345,8 @@ def _md_cell(s: str) -> str:
 
 
 def write_report(out_dir, *, title: str, metrics: dict, checks: list[dict], panels=(), notes=()) -> dict:
-    """Write out_dir/images/<panel>.png, out_dir/metrics.json and out_dir/report.md (module docstring),
-    each atomically, images first and report.md last. Returns {"metrics_json": path, "report_md": path,
+    """Write out_dir/images/<panel>.png, out_dir/metrics.json and out_dir/report.md
+    as one folder (module docstring). Returns {"metrics_json": path, "report_md": path,
     "images": {name: path}}."""
     if not isinstance(title, str) or not title.strip():
         raise ValueError("title must be a non-empty string")
@@ -364,9 +365,6 @@ def write_report(out_dir, *, title: str, metrics: dict, checks: list[dict], pane
     passed = all(c["passed"] for c in checks) if checks else None
     doc = to_jsonable({"title": title, "passed": passed, "checks": checks, "metrics": metrics, "notes": notes})
     blob = (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode()  # fails before any file is written
-
-    images = {p.name: _save_panel(p, out / "images" / f"{p.name}.png") for p in panels}
-    metrics_json = write_bytes_atomic(out / "metrics.json", blob)
 
     md = [f"# {title}", ""]
     if passed is None:
@@ -389,5 +387,11 @@ def write_report(out_dir, *, title: str, metrics: dict, checks: list[dict], pane
     md += [f"{k} = {_fmt_any(v)}" for k, v in flatten_metrics(metrics).items()]
     md += ["```", "", "metrics.json holds the same numbers (NaN as null, ±inf as \"inf\" / \"-inf\").", ""]
     text = re.sub(r"\n{3,}", "\n\n", "\n".join(md))  # one blank line between blocks
-    report_md = write_bytes_atomic(out / "report.md", text.encode())
-    return {"metrics_json": metrics_json, "report_md": report_md, "images": images}
+    # the whole folder at once: a failed or killed run leaves the previous report (or none), never a mix
+    with atomic_folder(out, overwrite=True) as tmp:
+        for p in panels:
+            _save_panel(p, tmp / "images" / f"{p.name}.png")
+        write_bytes_atomic(tmp / "metrics.json", blob)
+        write_bytes_atomic(tmp / "report.md", text.encode())
+    return {"metrics_json": out / "metrics.json", "report_md": out / "report.md",
+            "images": {p.name: out / "images" / f"{p.name}.png" for p in panels}}

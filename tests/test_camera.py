@@ -307,3 +307,12 @@ def test_yaml_other_errors(tmp_path):
     d = read_opencv_yaml(p)
     assert np.array_equal(d["m"], np.array([[1, 2], [3, 4]], np.float32)) and d["m"].dtype == np.float32
     assert d["n"] == 3 and d["s"] == "hi"
+
+
+def test_plane_points_invert_the_projection(mini):
+    """Closed form: the rays through the projections of points on a plane meet the plane at those points."""
+    cam = mini.camera("secondary")
+    rng = np.random.default_rng(3)
+    X = np.c_[rng.uniform(-60, 60, (50, 2)), np.full(50, -122.0)]
+    uv, _ = cam.project(X)
+    np.testing.assert_allclose(cam.plane_points(uv, (0, 0, -122.0), (0, 0, 1.0)), X, atol=1e-6)

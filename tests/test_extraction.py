@@ -30,11 +30,10 @@ class _ExactAlignment:
     extraction from the alignment, which tests/test_alignment.py scores on its own."""
 
     def __init__(self, rig):
-        from reconstruction.extraction import _plane_hits
-
         c0, c1 = rig.camera("primary"), rig.camera("secondary")
         ys, xs = np.mgrid[0:c0.height, 0:c0.width]
-        hits = _plane_hits(c0, np.stack([xs.ravel(), ys.ravel()], 1).astype(float), rig.sample)
+        hits = c0.plane_points(np.stack([xs.ravel(), ys.ravel()], 1).astype(float), rig.sample.origin,
+                               rig.sample.normal)
         self.map = c1.project(hits)[0].reshape(c0.height, c0.width, 2).astype(np.float32)
 
 
@@ -137,6 +136,12 @@ def test_bad_captures_are_refused(extracted, mini, tmp_path):
     (broken / "img00070_cam00.exr").unlink()
     with pytest.raises(ExtractionError, match="img00070_cam00.exr is missing"):
         extract(broken, mini, grid, _ExactAlignment(mini))
+    from reconstruction.pipeline import reconstruct
+
+    out = tmp_path / "recon"
+    with pytest.raises(ExtractionError, match="img00070_cam00.exr is missing"):
+        reconstruct(broken, out, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken"]  # no partial or temporary folder
     from twin.exr import read_rgb_exr, write_rgb_exr
 
     img = read_rgb_exr(broken / "img00000_cam00.exr")

@@ -166,6 +166,15 @@ class Camera:
         d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ self.R
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
+    def plane_points(self, uv: np.ndarray, origin, normal, distorted: bool = True) -> np.ndarray:
+        """World points (N, 3) where the rays through pixels uv (N, 2) meet the plane through `origin` with
+        `normal` (rays parallel to the plane give inf/nan)."""
+        d = self.pixel_rays(uv, distorted)
+        c = self.centre
+        n, o = np.asarray(normal, dtype=np.float64), np.asarray(origin, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return c + d * (((o - c) @ n) / (d @ n))[:, None]
+
     def resized(self, factor: float, name: str | None = None) -> "Camera":
         """The same camera with the image scaled by `factor` (0.5 = 2x2 binning). Pixel centres follow
         OpenCV's convention, so c' = (c + 0.5) * factor - 0.5."""

@@ -71,10 +71,7 @@ class PixelSurfaces:
 def choose_supersampling(camera, sample_plane, texel_mm: float, limit: int = 4) -> int:
     """S such that S x S rays sample every texel under the pixel footprint at the sample's centre."""
     uv, _ = camera.project(np.array([sample_plane.origin]))
-    rays = camera.pixel_rays(np.array([uv[0], uv[0] + [1.0, 0.0]]))
-    c = camera.centre
-    n, o = np.asarray(sample_plane.normal), np.asarray(sample_plane.origin)
-    hits = [c + d * ((o - c) @ n) / (d @ n) for d in rays]
+    hits = camera.plane_points(np.array([uv[0], uv[0] + [1.0, 0.0]]), sample_plane.origin, sample_plane.normal)
     footprint = np.linalg.norm(hits[1] - hits[0])
     return int(np.clip(np.ceil(footprint / texel_mm), 1, limit))
 

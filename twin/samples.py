@@ -588,13 +588,18 @@ def _satin_weave(res: int, seed: int, size_mm: float) -> dict:
 _BUILDERS = {"ramps": _ramps, "brushed_metal": _brushed_metal, "satin_weave": _satin_weave}
 
 
-def _check_resolution(resolution) -> int:
-    if isinstance(resolution, bool):
-        raise SampleError(f"resolution must be an integer >= {MIN_RESOLUTION}, got {resolution!r}")
+def _integer(value, what: str) -> int:
+    """An integer argument (int or numpy integer, not bool), else a SampleError saying `what` it must be."""
+    if isinstance(value, bool):
+        raise SampleError(f"{what}, got {value!r}")
     try:
-        res = operator.index(resolution)
+        return operator.index(value)
     except TypeError:
-        raise SampleError(f"resolution must be an integer >= {MIN_RESOLUTION}, got {resolution!r}") from None
+        raise SampleError(f"{what}, got {value!r}") from None
+
+
+def _check_resolution(resolution) -> int:
+    res = _integer(resolution, f"resolution must be an integer >= {MIN_RESOLUTION}")
     if not MIN_RESOLUTION <= res <= MAX_RESOLUTION:
         raise SampleError(f"resolution must be in [{MIN_RESOLUTION}, {MAX_RESOLUTION}], got {res}")
     return res
@@ -608,12 +613,7 @@ def builtin_sample(name: str, resolution: int = 128, seed: int = 0,
     if name not in _BUILDERS:
         raise SampleError(f"unknown built-in sample {name!r}; expected one of {', '.join(BUILTIN_SAMPLES)}")
     res = _check_resolution(resolution)
-    if isinstance(seed, bool):
-        raise SampleError(f"seed must be a non-negative integer, got {seed!r}")
-    try:
-        seed = operator.index(seed)
-    except TypeError:
-        raise SampleError(f"seed must be a non-negative integer, got {seed!r}") from None
+    seed = _integer(seed, "seed must be a non-negative integer")
     if seed < 0:
         raise SampleError(f"seed must be a non-negative integer, got {seed}")
     maps = _BUILDERS[name](res, seed, size_mm)

@@ -84,11 +84,7 @@ def camera_frustum(cam, sample) -> tuple[np.ndarray, np.ndarray]:
     """The camera centre (3,) and the 4 image corners (4, 3) where their rays meet the sample plane."""
     w, h = cam.width, cam.height
     uv = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
-    d = cam.pixel_rays(uv)
-    C = cam.centre
-    n, o = np.asarray(sample.normal), np.asarray(sample.origin)
-    depth = np.dot(o - C, n) / (d @ n)
-    return C, C + depth[:, None] * d
+    return cam.centre, cam.plane_points(uv, sample.origin, sample.normal)
 
 
 def led_colours(values, num_leds: int) -> tuple[str, np.ndarray | None]:
