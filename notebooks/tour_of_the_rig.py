@@ -43,9 +43,9 @@ from matplotlib.colors import to_rgb
 warnings.filterwarnings("ignore", message="IProgress not found")
 
 import twin
-from twin.cross_plot import cross_rgb
-from twin.patterns import PatternSet
-from twin.view import BOARD_COLOURS, show_rig
+from twin.view.cross_plot import cross_rgb
+from twin.capture.patterns import PatternSet
+from twin.view.rig_view import BOARD_COLOURS, show_rig
 
 # %matplotlib inline
 

@@ -3,7 +3,7 @@ sample (paper §8; reference §6.1 step 5 and §6.2).
 
     al = align_views(primary_hdr, secondary_hdr, rig)          # the uniform-light photos, k = 129
     warped = warp_to_primary(secondary_photo, al)              # any secondary photo in the primary's grid
-    alignment_error(al, pixel_texel_cam00, pixel_texel_cam01)  # against the twin's ground-truth sidecars
+    alignment_error(al, pixel_texel_primary, pixel_texel_secondary)  # against a twin capture's ground truth
 
 Two steps, as in the reference:
 
@@ -37,7 +37,7 @@ Two steps, as in the reference:
      elsewhere the map is the homography.
    The dense step looks inside the holder frame's window only (`_roi`).
 
-Coordinates: pixel (x = column, y = row), centres at integers (twin.units). The map is returned in RAW
+Coordinates: pixel (x = column, y = row), centres at integers (twin.rig.units). The map is returned in RAW
 (distorted) pixel coordinates of both cameras, as the photos are stored.
 
 Photos are linear HDR. SIFT needs 8-bit images and gradients that do not depend on the exposure, so each

@@ -24,7 +24,7 @@ def _texels(rig, model, n: int, seed: int, device: str, exact: bool):
     import torch
 
     import twin
-    from twin.pattern_sets import linear_lights
+    from twin.capture.pattern_sets import linear_lights
 
     from .data import LUMITEXEL_SCALE, SamplingConfig, _generator, sample_parameters, synthesize
 

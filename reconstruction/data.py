@@ -251,7 +251,7 @@ def synthesize(rig, params: dict, camera: str, device="cpu") -> torch.Tensor:
     if wdev.startswith("cuda"):  # launch on torch's current stream: the zero-copy output is read by torch next
         import warp as wp
 
-        from twin.forward import _init
+        from twin.optics.inputs import _init
 
         _init()  # stream_from_torch needs an initialised Warp runtime
         with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(torch.device(wdev)))):

@@ -1,18 +1,19 @@
 """Measurement extraction: from a capture folder's HDR photos to per-texel measurements (reference §6.1, §6.3).
 
-    grid = texture_grid(rig, capture, resolution=64)        # the texture grid over the sample
-    meas = extract(capture, rig, grid, alignment)           # per texel: learned (+,-) differences of both
+    session = CaptureSession.open(folder)                   # the capture (twin.capture.session)
+    grid = texture_grid(session, rig, resolution=64)        # the texture grid over the sample
+    meas = extract(session, rig, grid, alignment)           # per texel: learned (+,-) differences of both
                                                             # views, line measurements, transparency
 
 The texture grid (reference §6.1 step 3): a square grid of texels centred on the sample plane's origin, in the
-SVBRDF maps' convention (twin.samples: row i along +y, column j along +x, texel centres at
+SVBRDF maps' convention (twin.materials.samples: row i along +y, column j along +x, texel centres at
 -s/2 + (j + 0.5) s/R), so that the reconstruction exports straight to OpenSVBRDF maps. Its side: the sample's
 extent found in the bottom-lit photos (the sample blocks the light that the empty board lets through:
 photo 128 against the empty-board photo 130), as the largest centred square inside that region, shrunk by
 6.5% of the extent on every side as the reference does (so no texel straddles the sample's edge).
 
 Per photo and camera (reference §6.3, with the differences stated):
-  1. flat field (calibration.flat_field) and colour matrix (calibration.colour_matrix): camera RGB -> the
+  1. flat field and colour matrix (twin.camera.correction, from the rig's calibration): camera RGB -> the
      LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
   2. an anti-aliasing Gaussian matched to the texel footprint, the reference's odd kernel width
      k = 2 ceil(d/2 + 1) - 1 with d the largest pixel step between adjacent texels (only when d > 1.5 px:
@@ -30,12 +31,13 @@ Transparency (reference §6.3): clip(mean_rgb(bottom / empty), 0, 1) at the texe
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
+
+from twin.capture.plan import BOTTOM, EMPTY_BOTTOM, LEARNED, LINES
+from twin.capture.session import CaptureSession
 
 # reference §6.1: the texture grid is the sample's bounding box shrunk by 6.5% of its extent on every side
 GRID_SHRINK = 0.065
@@ -48,9 +50,6 @@ SAMPLE_RATIO = 0.5
 LIT_FRACTION = 0.05
 MIN_SAMPLE_PIXELS = 64
 
-LEARNED = range(0, 64)       # reference §6.3 photo indices (twin.capture plan)
-LINES = range(64, 128)
-BOTTOM, UNIFORM, EMPTY_BOTTOM = 128, 129, 130
 
 
 class ExtractionError(ValueError):
@@ -80,7 +79,7 @@ class TextureGrid:
 
     def positions(self, rig) -> np.ndarray:
         """(R*R, 3) float64 world positions (mm) of the texel centres, row-major (i * R + j)."""
-        from twin.samples import grid_positions
+        from twin.materials.samples import grid_positions
 
         return grid_positions(self.size_mm, self.shape, rig.sample).reshape(-1, 3)
 
@@ -98,61 +97,27 @@ class Measurements:
     pixel_primary: np.ndarray  # (N, 2) the texel centre's primary pixel (x, y)
     pixel_secondary: np.ndarray  # (N, 2) its aligned secondary pixel (x, y), NaN where unknown
 
-    def save(self, path) -> None:
-        from twin.atomic import atomic_path
 
-        with atomic_path(Path(path), suffix=".npz") as tmp:
-            np.savez(tmp, learned=self.learned, lines=self.lines, line_weights=self.line_weights,
-                     transparency=self.transparency, valid=self.valid, pixel_primary=self.pixel_primary,
-                     pixel_secondary=self.pixel_secondary,
-                     grid=np.array([self.grid.resolution, self.grid.size_mm], np.float64))
-
-
-def read_manifest(capture) -> dict:
-    path = Path(capture) / "manifest.json"
-    if not path.is_file():
-        raise ExtractionError(f"{capture}: not a capture folder (no manifest.json)")
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ExtractionError(f"{path}: unreadable manifest ({e})") from None
-
-
-def capture_patterns(capture, rig, names) -> np.ndarray:
-    """(len(names), L, 3) float32 relative drive of the named frames in the capture's own patterns.npz (what
-    the LEDs really showed), checked against the rig."""
-    from twin.patterns import PatternError, load_patterns
+def capture_patterns(session: CaptureSession, rig, names) -> np.ndarray:
+    """(len(names), L, 3) float32 relative drive of the named frames in the capture's own patterns (what the
+    LEDs really showed), checked against the rig."""
+    from twin.capture.patterns import PatternError
 
     try:
-        pats = load_patterns(Path(capture) / "patterns.npz")
+        pats = session.patterns()
         pats.check_rig(rig)
-    except (PatternError, OSError) as e:
-        raise ExtractionError(f"{capture}: patterns.npz: {e}") from None
+    except PatternError as e:
+        raise ExtractionError(f"{session.dir}: {e}") from None
     index = {n: k for k, n in enumerate(pats.names)}
     missing = [n for n in names if n not in index]
     if missing:
-        raise ExtractionError(f"{capture}: patterns.npz lacks frames {missing[:3]}{'...' if len(missing) > 3 else ''}")
+        raise ExtractionError(f"{session.dir}: its patterns lack frames {missing[:3]}{'...' if len(missing) > 3 else ''}")
     return pats.weights[[index[n] for n in names]].astype(np.float32)
-
-
-def read_photo(capture, index: int, camera_index: int) -> np.ndarray:
-    """(H, W, 3) float32 HDR photo k of camera c; a clear error when it is missing or not finite."""
-    from twin.exr import read_rgb_exr
-
-    path = Path(capture) / f"img{index:05d}_cam{camera_index:02d}.exr"
-    if not path.is_file():
-        raise ExtractionError(f"{capture}: photo {path.name} is missing (an incomplete capture? re-run "
-                              "`hemicube capture` on the folder to finish it)")
-    img = read_rgb_exr(path)
-    if not np.all(np.isfinite(img)):
-        raise ExtractionError(f"{path}: the photo holds NaN or Inf values")
-    return img
 
 
 def calibration_of(camera) -> tuple[np.ndarray, np.ndarray]:
     """(flat field (H, W, 1), colour matrix (3, 3)) of a camera: computed once per camera, used per photo."""
-    from calibration.colour_matrix import colour_matrix
-    from calibration.flat_field import flat_field
+    from twin.camera.correction import colour_matrix, flat_field
 
     return flat_field(camera)[..., None], colour_matrix(camera)
 
@@ -161,7 +126,7 @@ def corrected(img: np.ndarray, camera, calibration=None) -> np.ndarray:
     """Step 1: flat field and colour matrix (`calibration_of(camera)` unless given), camera RGB -> LED-RGB
     radiance, clamped at >= 0 (reference §6.3 step 6: read noise makes dark pixels slightly negative; no
     light is)."""
-    from calibration.colour_matrix import apply_colour_matrix
+    from twin.camera.correction import apply_colour_matrix
 
     if img.shape != (camera.height, camera.width, 3):
         raise ExtractionError(f"photo of camera {camera.name!r} is {img.shape}, the rig says "
@@ -170,16 +135,16 @@ def corrected(img: np.ndarray, camera, calibration=None) -> np.ndarray:
     return np.maximum(apply_colour_matrix(img * flat, C), 0.0)
 
 
-def detect_sample_size(capture, rig) -> float:
+def detect_sample_size(session: CaptureSession, rig) -> float:
     """Side (mm) of the largest square centred on the plane origin inside the region where the sample blocks
     the bottom light (photo 128 against 130, primary camera), before the reference's 6.5% shrink."""
     cam = rig.camera(next(iter(rig.cameras)))
-    lit = read_photo(capture, EMPTY_BOTTOM, 0).mean(axis=2)
-    sample = read_photo(capture, BOTTOM, 0).mean(axis=2)
+    lit = session.photo(EMPTY_BOTTOM, 0).mean(axis=2)
+    sample = session.photo(BOTTOM, 0).mean(axis=2)
     ok = lit > LIT_FRACTION * lit.max()
     under = ok & (sample < SAMPLE_RATIO * lit)
     if under.sum() < MIN_SAMPLE_PIXELS:
-        raise ExtractionError(f"{capture}: no opaque sample found in the bottom-lit photos ({int(under.sum())} "
+        raise ExtractionError(f"{session.dir}: no opaque sample found in the bottom-lit photos ({int(under.sum())} "
                               "pixels block the light); give the sample size explicitly (--size-mm)")
     ys, xs = np.nonzero(under)
     p = cam.plane_points(np.stack([xs, ys], axis=1).astype(np.float64), rig.sample.origin, rig.sample.normal)
@@ -189,17 +154,16 @@ def detect_sample_size(capture, rig) -> float:
     lo_v, hi_v = np.percentile(v, [0.5, 99.5])
     half = min(-lo_u, hi_u, -lo_v, hi_v)
     if half <= 0:
-        raise ExtractionError(f"{capture}: the sample region does not contain the plane origin; give the sample "
+        raise ExtractionError(f"{session.dir}: the sample region does not contain the plane origin; give the sample "
                               "size explicitly (--size-mm)")
     return 2.0 * half
 
 
-def texture_grid(capture, rig, resolution: int, size_mm: float | None = None) -> TextureGrid:
+def texture_grid(session: CaptureSession, rig, resolution: int, size_mm: float | None = None) -> TextureGrid:
     """The reconstruction's texture grid: `size_mm` when given, else the detected sample square shrunk by
     GRID_SHRINK of its extent on every side (reference §6.1)."""
-    read_manifest(capture)
     if size_mm is None:
-        size_mm = detect_sample_size(capture, rig) * (1.0 - 2.0 * GRID_SHRINK)
+        size_mm = detect_sample_size(session, rig) * (1.0 - 2.0 * GRID_SHRINK)
     return TextureGrid(int(resolution), float(size_mm))
 
 
@@ -230,13 +194,12 @@ def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
     return _sample(alignment.map, uv_primary, 0)
 
 
-def extract(capture, rig, grid: TextureGrid, alignment, *, progress: bool = False) -> Measurements:
-    """Per-texel measurements of a capture folder (module docstring)."""
+def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, progress: bool = False) -> Measurements:
+    """Per-texel measurements of a capture (module docstring)."""
     from .data import LUMITEXEL_SCALE
 
-    doc = read_manifest(capture)
-    if doc.get("rig_digest") not in (None, rig.digest()):
-        raise ExtractionError(f"{capture} was captured with another rig (digest {doc.get('rig_digest')}) than "
+    if session.rig_digest != rig.digest():
+        raise ExtractionError(f"{session.dir} was captured with another rig (digest {session.rig_digest}) than "
                               f"{rig.name!r} ({rig.digest()})")
     cams = [rig.camera(c) for c in rig.cameras]
     if len(cams) != 2:
@@ -250,7 +213,7 @@ def extract(capture, rig, grid: TextureGrid, alignment, *, progress: bool = Fals
     calibrations = [calibration_of(c) for c in cams]
 
     def photo(k, c):
-        return corrected(read_photo(capture, k, c), cams[c], calibrations[c])
+        return corrected(session.photo(k, c), cams[c], calibrations[c])
 
     from tqdm import tqdm
 
@@ -269,6 +232,6 @@ def extract(capture, rig, grid: TextureGrid, alignment, *, progress: bool = Fals
     valid = (np.isfinite(learned).all(axis=(1, 2)) & np.isfinite(lines).all(axis=(1, 2))
              & np.isfinite(transparency))
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
-    weights = capture_patterns(capture, rig, [f"line_{j:02d}" for j in range(len(LINES))])[:, upper, :]
+    weights = capture_patterns(session, rig, [f"line_{j:02d}" for j in range(len(LINES))])[:, upper, :]
     return Measurements(grid, learned, lines, weights, transparency, valid, uv0.astype(np.float32),
                         uv1.astype(np.float32))

@@ -9,7 +9,7 @@ Inputs. `latent` (N, 56) = the network's grey latent [a(8), s(48)] (reference §
 `lines` (N, K, 3) = each texel's K linear-light photo measurements, primary view, in network units (the
 units the decoder predicts: upper-LED lumitexels times reconstruction.data.LUMITEXEL_SCALE);
 `line_weights` (K, L_upper, 3) in [0, 1] = the linear lights' relative drive on the UPPER LEDs (the
-lumitexel's LEDs; `twin.pattern_sets.linear_lights(rig).weights[:, upper]`).
+lumitexel's LEDs; `twin.capture.pattern_sets.linear_lights(rig).weights[:, upper]`).
 
 Objective (reference §4, the same in every pass): a SUM over the batch's texels, lines and channels
 

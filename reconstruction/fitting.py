@@ -2,7 +2,7 @@
 line-light measurements) -> anisotropic GGX parameters and a world-frame shading frame -> OpenSVBRDF maps.
 
     result = fit_ggx(rig, positions, lumitexels, lines=..., line_weights=..., config=FitConfig())
-    maps = to_maps(result, grid_shape, size_mm, transparency, name)      # twin.samples.SVBRDFMaps
+    maps = to_maps(result, grid_shape, size_mm, transparency, name)      # twin.materials.samples.SVBRDFMaps
 
 Physics. The prediction of a texel is the twin's own forward model, not a re-implementation of GGX:
     m_hat[p, l, c] = twin.lumitexels(rig, pos, n, t, rho_d, rho_s, alpha_x, alpha_y, convention="physical",
@@ -20,7 +20,7 @@ Loss per texel (reference §5 adds lambda_m times the line term to the lumitexel
              rescales the loss. Dividing by the target's mean does the same and keeps lambda dimensionless.
 
 Albedos in closed form. Eq. 1 is linear in the albedos: m_hat[l, c] = rho_d[c] D[l, c] + rho_s[c] S[l, c]
-with D = I_c Psi V (wi.n) / (pi r^2) and S = I_c Psi V fs (wi.n) / r^2 (twin.lumitexel's docstring; Schlick's
+with D = I_c Psi V (wi.n) / (pi r^2) and S = I_c Psi V fs (wi.n) / r^2 (twin.optics.lumitexel's docstring; Schlick's
 F0 is grey, so fs is one number per LED). ONE launch of the forward model with rho_d = (1, 0, 0) and
 rho_s = (0, 1, 0) gives D in channel 0 and S in channel 1; the other channels follow from the LEDs' RGB
 intensities (D[l, c] = D[l, 0] I[l, c] / I[l, 0]). For given geometry, rho_d and rho_s then minimise the
@@ -28,7 +28,7 @@ loss's Gauss-Newton quadratic at the target (weights f'(m)^2; exact for "mse") o
 [0, rho_s_max], per texel and channel, lumitexel and line terms together (`_projected`).
 
 Parameterisation of the geometry: 5 unconstrained numbers per texel, [u, v, theta, a_x, a_y]:
-  * n = normalize(N + u X + v Y) for the sample plane's normal N and axes X, Y (twin.samples): n.N > 0 for
+  * n = normalize(N + u X + v Y) for the sample plane's normal N and axes X, Y (twin.materials.samples): n.N > 0 for
     every finite (u, v), smooth, no seam. The reference maps 2 sigmoids to a hemi-octahedral normal around
     the VIEW direction (§2.3), which gives no world meaning to its parameters and lets n_z < 0 under an
     oblique camera, against the map contract (n_z > 0); this is a justified alternative, not a copy.
@@ -57,7 +57,7 @@ and tangent angles), each with its closed-form albedos; each texel starts from i
 The neural method first regresses its heads onto these numbers (warm start).
 
 Measured (the defaults' evidence; mini rig, one core of a shared 2-core CPU). Synthetic: the `ramps` sample
-resampled by twin.samples, primary view; "exact" = the truth's lumitexels and lines; "decoded" = the
+resampled by twin.materials.samples, primary view; "exact" = the truth's lumitexels and lines; "decoded" = the
 shipped network's RGB decode of the truth (grey shape latent from both views, per-channel albedo latents;
 median error 27% per lumitexel, no fine-tuning) with the exact lines x (1 + 2% Gaussian noise). Pipeline:
 a `hemicube capture` of ramps through reconstruction.pipeline (48 x 48, fine-tuned latents, extracted
@@ -95,7 +95,7 @@ import torch
 from torch import nn
 
 import twin
-from twin.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy
+from twin.materials.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy
 
 from .data import LUMITEXEL_SCALE
 
@@ -119,7 +119,7 @@ class FitConfig:
     lr: float | None = None  # None: 0.02 (direct, ours, measured against 0.01 and 0.05), 1e-3 (neural, ref. §5)
     batch: int | None = None  # direct: texels per chunk (None: all); neural: texels per step (None: 256)
     alpha_range: tuple = (0.006, 0.503)  # reference §5: 0.006 + 0.497 sigmoid
-    rho_s_max: float = 10.0  # reference §5 ps_range (20 for paper, a map range twin.samples allows)
+    rho_s_max: float = 10.0  # reference §5 ps_range (20 for paper, a map range twin.materials.samples allows)
     # weight of the line term (reference §5's lambda_m; ours, measured). The reference's 0.01-0.1 multiply
     # unnormalised sums, whose squares exceed the lumitexels' by (mean M / mean m)^2 (81 on the mini rig's
     # ramps, more with the paper rig's longer lines): 0.8-8 or more in this normalised loss.
@@ -662,7 +662,7 @@ def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, grid_s
 # --- export ----------------------------------------------------------------------------------------------
 def to_maps(result: FitResult, grid_shape, size_mm: float, transparency=None, name: str = "fit") -> SVBRDFMaps:
     """FitResult (row-major texels of an R x C grid, R == C) -> SVBRDFMaps in the reference's export
-    convention (§5, §7.1): alpha_x >= alpha_y (twin.samples.canonical_anisotropy), rho clipped to the map
+    convention (§5, §7.1): alpha_x >= alpha_y (twin.materials.samples.canonical_anisotropy), rho clipped to the map
     ranges, unit n with n_z > 0 and a unit tangent orthogonal to it. transparency (R, C) in [0, 1] or None
     (opaque)."""
     R, C = (int(v) for v in grid_shape)

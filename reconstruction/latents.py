@@ -1,7 +1,7 @@
 """Decode (paper §7, reference §3.2 output): the network's encoder turns each texel's 2-view learned
 measurements into its 56-D latent [albedo 8, shape 48]; and the latent texture file (reference §4 gathering).
 
-    check_patterns(model, capture, rig)          # the capture's learned frames are this network's patterns
+    check_patterns(model, session, rig)          # the capture's learned frames are this network's patterns
     z = decode(model, meas.learned, device="cuda", batch=65536)     # (N, 56)
     write_latent_exr(path, latent72, grid_shape) / read_latent_exr(path)   # 72 float32 channels L_0 ... L_71
 """
@@ -10,20 +10,22 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .extraction import ExtractionError, LEARNED, capture_patterns
+from twin.capture.plan import LEARNED
+
+from .extraction import ExtractionError, capture_patterns
 
 DECODE_BATCH = 65536  # texels per encoder batch: bounds memory for 1024^2 texels, large enough to fill a GPU
 
 
-def check_patterns(model, capture, rig) -> None:
+def check_patterns(model, session, rig) -> None:
     """The capture's 64 learned frames must be the network's own exported patterns, level for level: the
     encoder only understands the measurements of the patterns it was trained with."""
     from .train import export_patterns
 
     mine = export_patterns(model, rig)
-    theirs = capture_patterns(capture, rig, list(mine.names))
+    theirs = capture_patterns(session, rig, list(mine.names))
     if not np.array_equal(np.rint(theirs * 255).astype(np.uint8), mine.levels):
-        raise ExtractionError(f"{capture}: its learned frames ({len(LEARNED)}) are not this network's patterns; "
+        raise ExtractionError(f"{session.dir}: its learned frames ({len(LEARNED)}) are not this network's patterns; "
                               "decode it with the network whose patterns were captured")
 
 
@@ -46,7 +48,7 @@ def decode(model, learned: np.ndarray, *, device="cpu", batch: int = DECODE_BATC
 
 def write_latent_exr(path, latent: np.ndarray, grid_shape) -> None:
     """Reference §4: the latent texture as float32 channels L_0 ... L_{D-1}, one image of grid_shape."""
-    from twin.exr import write_exr
+    from twin.materials.exr import write_exr
 
     R, C = grid_shape
     z = np.asarray(latent, dtype=np.float32).reshape(R, C, -1)
@@ -55,7 +57,7 @@ def write_latent_exr(path, latent: np.ndarray, grid_shape) -> None:
 
 def read_latent_exr(path) -> np.ndarray:
     """(R, C, D) float32 latents of a latent EXR (channels L_0 ... in numeric order)."""
-    from twin.exr import read_exr
+    from twin.materials.exr import read_exr
 
     ch = read_exr(path)
     names = sorted((n for n in ch if n.startswith("L_")), key=lambda n: int(n[2:]))

@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy, grid_coordinates
+from twin.materials.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy, grid_coordinates
 
 __all__ = [
     "ANISOTROPY_RATIO", "RHO_FLOOR", "resample_maps", "truth_coverage", "map_errors", "image_scores",
@@ -71,7 +71,7 @@ _SNAP = 1e-9  # texel coordinates this close to an integer are that integer (exa
 
 def _grid_coords(truth: SVBRDFMaps, size_mm: float, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     """Continuous truth (row, col) coordinates (each (resolution,), float64) of the texel centres of a
-    square grid of `resolution` texels over `size_mm`, centred on the same origin (twin.samples
+    square grid of `resolution` texels over `size_mm`, centred on the same origin (twin.materials.samples
     conventions: texel (i, j) centre at −size/2 + (j + 0.5)·size/res; truth texel centre (i, j) = (i, j))."""
     if isinstance(size_mm, bool) or not isinstance(size_mm, (int, float, np.integer, np.floating)) \
             or not math.isfinite(size_mm) or size_mm <= 0:

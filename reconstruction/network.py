@@ -8,7 +8,7 @@ Paper §6 (reference §3.1) and the released code (reference §3.2-3.3), in one 
 
 * **Pattern layer** (paper: "layer 1 is a linear layer whose weights are the lighting patterns"): K signed
   patterns with 8-bit quantisation in the loop (straight-through), exported as (+, -) LED-level frames in
-  the capture plan's order (`twin.pattern_sets.signed_pairs`, names "learned_00+", "learned_00-", ...).
+  the capture plan's order (`twin.capture.pattern_sets.signed_pairs`, names "learned_00+", "learned_00-", ...).
 * **Encoder**: the paper's single encoder fed with all views' measurements (the released code's
   32-expert gated mixture of experts, reference §3.2, is not reproduced: one expert is built, with the
   released expert's branch shapes, scaled to the rig). Two branches: albedo -> 8, shape -> 48.

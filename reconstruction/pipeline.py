@@ -10,16 +10,7 @@ to `reconstruction.validation`).
     4. fine-tuning     three passes against the line photos, one held out (reconstruction.finetune; §7.1)
     5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.fitting; §7.2)
 
-Output folder:
-    reconstruction.json      config, network, timings (s) per stage, counts
-    alignment.npz            the alignment map (primary pixel -> secondary pixel) and homography
-    measurements.npz         the extracted measurements (reconstruction.extraction.Measurements)
-    latent.exr               72 float32 channels L_0 ... L_71 (reference §4: [a_R, a_G, a_B, s])
-    latent_passes.npz        the latents after each fine-tuning pass (pass0 ... pass3)
-    maps/                    the fitted OpenSVBRDF maps (twin.samples format: pd/ps/ax_ay/normal/tangent/
-                             transparency textures, αx ≥ αy)
-The folder is written as a whole (twin.atomic.atomic_folder): a failed or killed run leaves the previous
-folder, or none, never a partial one.
+The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone).
 """
 from __future__ import annotations
 
@@ -33,10 +24,7 @@ import numpy as np
 from .alignment import AlignConfig
 from .finetune import FinetuneConfig
 from .fitting import FitConfig
-
-FORMAT_NAME = "hemicube-reconstruction"
-FORMAT_VERSION = 1
-
+from .output import ReconstructionFolder
 
 @dataclass(frozen=True)
 class ReconstructConfig:
@@ -59,7 +47,7 @@ class Reconstruction:
     directory: Path
     measurements: object      # reconstruction.extraction.Measurements (its .grid is the texture grid)
     latent: np.ndarray        # (N, 72) final latents
-    maps: object              # twin.samples.SVBRDFMaps
+    maps: object              # twin.materials.samples.SVBRDFMaps
     holdout_line: int
     timings: dict
     alignment: object
@@ -93,31 +81,27 @@ def choose_holdout(lines: np.ndarray, valid: np.ndarray) -> int:
 def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig(), *, progress: bool = True,
                 rig=None) -> Reconstruction:
     """Run the pipeline on a capture folder into `output` (module docstring)."""
-    import twin
     from twin.atomic import atomic_folder
+    from twin.capture.session import CaptureSession
 
-    from .extraction import read_manifest
-
-    capture, out = Path(capture), Path(output)
-    doc = read_manifest(capture)
+    session, out = CaptureSession.open(capture), Path(output)
     if rig is None:
-        rig = twin.load_rig(capture / "rig") if (capture / "rig").is_dir() else twin.load_rig(doc["rig"])
+        rig = session.rig()
     with atomic_folder(out, overwrite=True) as tmp:  # a failed run leaves the previous folder (or none)
-        recon = _reconstruct_into(tmp, capture, doc, rig, config, progress)
+        recon = _reconstruct_into(ReconstructionFolder(tmp), session, rig, config, progress)
     recon.directory = out
     return recon
 
 
-def _reconstruct_into(out: Path, capture: Path, doc: dict, rig, config: ReconstructConfig,
+def _reconstruct_into(out: ReconstructionFolder, session, rig, config: ReconstructConfig,
                       progress: bool) -> Reconstruction:
-    from twin.atomic import write_bytes_atomic
-    from twin.samples import write_maps
+    from twin.capture.plan import UNIFORM
 
     from .alignment import align_views
-    from .extraction import UNIFORM, extract, read_photo, texture_grid
+    from .extraction import extract, texture_grid
     from .finetune import decode_rgb, finetune
     from .fitting import fit_ggx, to_maps
-    from .latents import check_patterns, decode, write_latent_exr
+    from .latents import check_patterns, decode
 
     timings: dict[str, float] = {}
 
@@ -127,23 +111,23 @@ def _reconstruct_into(out: Path, capture: Path, doc: dict, rig, config: Reconstr
         return time.perf_counter()
 
     t = stage("alignment")
-    alignment = align_views(read_photo(capture, UNIFORM, 0), read_photo(capture, UNIFORM, 1), rig,
+    alignment = align_views(session.photo(UNIFORM, 0), session.photo(UNIFORM, 1), rig,
                             replace(config.align, device=config.device))
     timings["alignment_s"] = time.perf_counter() - t
-    _save_npz(out / "alignment.npz", map=alignment.map, homography=alignment.homography)
+    out.write_alignment(alignment)
 
     t = stage("extraction")
-    grid = texture_grid(capture, rig, config.resolution, config.size_mm)
-    meas = extract(capture, rig, grid, alignment, progress=progress)
+    grid = texture_grid(session, rig, config.resolution, config.size_mm)
+    meas = extract(session, rig, grid, alignment, progress=progress)
     if not meas.valid.all():  # the grid lies inside the sample, which both views see whole
-        raise ValueError(f"{capture}: {int((~meas.valid).sum())} of the {grid.resolution}^2 texels are not seen "
+        raise ValueError(f"{session.dir}: {int((~meas.valid).sum())} of the {grid.resolution}^2 texels are not seen "
                          "by both cameras (or their photos are not finite); choose a smaller --size-mm")
     timings["extraction_s"] = time.perf_counter() - t
-    meas.save(out / "measurements.npz")
+    out.write_measurements(meas)
 
     t = stage("decode")
     model = load_network(config.network, rig, config.device)
-    check_patterns(model, capture, rig)
+    check_patterns(model, session, rig)
     z56 = decode(model, meas.learned, device=config.device)
     timings["decode_s"] = time.perf_counter() - t
 
@@ -155,8 +139,7 @@ def _reconstruct_into(out: Path, capture: Path, doc: dict, rig, config: Reconstr
     ft = finetune(model, z56, meas.lines, meas.line_weights, ft_cfg)
     timings["finetune_s"] = time.perf_counter() - t
     latent = ft.latent
-    write_latent_exr(out / "latent.exr", latent, grid.shape)
-    _save_npz(out / "latent_passes.npz", **ft.passes)
+    out.write_latent(latent, grid.shape, ft.passes)
 
     t = stage("fitting")
     lumi = decode_rgb(model, ft.latent)
@@ -165,28 +148,21 @@ def _reconstruct_into(out: Path, capture: Path, doc: dict, rig, config: Reconstr
                   grid_shape=grid.shape, config=replace(config.fit, device=config.device))
     timings["fitting_s"] = time.perf_counter() - t
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
-                   name=f"reconstruction of {doc.get('sample', 'a capture')}")
-    write_maps(maps, out / "maps")
+                   name=f"reconstruction of {session.sample}")
+    out.write_maps(maps)
 
-    summary = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "capture": str(capture),
+    summary = {"capture": str(session.dir),
                "rig": rig.name, "rig_digest": rig.digest(), "config": _jsonable(asdict(config)),
                "grid": {"resolution": grid.resolution, "size_mm": grid.size_mm},
                "texels": int(meas.valid.size), "holdout_line": hold, "timings_s": timings,
                "finetune": {"iterations": ft.iterations, "seconds": ft.seconds},
                "alignment": _jsonable(alignment.info)}
-    write_bytes_atomic(out / "reconstruction.json", json.dumps(summary, indent=1).encode())
-    return Reconstruction(out, meas, latent, maps, hold, timings, alignment, model)
+    out.write_summary(summary)
+    return Reconstruction(out.dir, meas, latent, maps, hold, timings, alignment, model)
 
 
 def _with_holdout(cfg, hold: int, device):
     return replace(cfg, holdout=tuple(sorted(set(cfg.holdout) | {hold})), device=device)
-
-
-def _save_npz(path: Path, **arrays) -> None:
-    from twin.atomic import atomic_path
-
-    with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, **arrays)
 
 
 def _jsonable(x):

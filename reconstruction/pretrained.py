@@ -6,8 +6,12 @@ capture plan need no training.
                                                         its TrainConfig, seed, steps, rig digest, and
                                                         the held-out Eq. 3 loss it reached
 
-Only the `mini` rig's model ships (260 k parameters, ~1 MB). Its learned patterns are the capture
-plan's default for that rig (`pretrained_patterns`), derived from the weights, not stored twice.
+Only the `mini` rig's model ships (260 k parameters, ~1 MB). Its learned patterns are the capture plan's
+default for that rig: `write_default_patterns` stores them as data the rig carries
+(twin.capture.plan.DEFAULT_PATTERNS), since `twin` sits below `reconstruction` and never imports it; after
+shipping a retrained network, run
+    python -c "from reconstruction.pretrained import write_default_patterns; write_default_patterns('mini')"
+(tests/test_pretrained.py fails while the two disagree).
 """
 from __future__ import annotations
 
@@ -15,6 +19,8 @@ import json
 from pathlib import Path
 
 import torch
+
+from twin.atomic import write_bytes_atomic
 
 from .network import AcquisitionNet
 from .train import TrainConfig, _evaluate, export_patterns
@@ -42,7 +48,7 @@ def load_pretrained(rig_name: str = "mini", device: str = "cpu") -> tuple[Acquis
 
 
 def pretrained_patterns(rig):
-    """The shipped network's learned patterns for `rig` (a twin.patterns.PatternSet), or None when no
+    """The shipped network's learned patterns for `rig` (a twin.capture.patterns.PatternSet), or None when no
     network ships for it or it was trained on a different rig (digest mismatch)."""
     info = pretrained_info(rig.name)
     if info is None or info["rig_digest"] != rig.digest():
@@ -50,6 +56,28 @@ def pretrained_patterns(rig):
     model, info = load_pretrained(rig.name)
     return export_patterns(model, rig, note=f"learned patterns of the shipped {rig.name} network "
                                             f"({info['command']})")
+
+
+def write_default_patterns(rig_name: str) -> None:
+    """Store the shipped network's learned patterns as the built-in rig's default capture patterns."""
+    import tomllib
+
+    import tomli_w
+
+    import twin
+    from twin.capture.patterns import save_patterns
+    from twin.capture.plan import DEFAULT_PATTERNS
+
+    rig = twin.load_rig(rig_name)
+    patterns = pretrained_patterns(rig)
+    if patterns is None:
+        raise ValueError(f"no network ships for rig {rig_name!r} (or it was trained on another version of it)")
+    index_path = DEFAULT_PATTERNS / "index.toml"
+    index = tomllib.loads(index_path.read_text()) if index_path.is_file() else {}
+    index[rig_name] = {"file": f"{rig_name}.npz", "rig_digest": rig.digest(),
+                       "source": f"reconstruction/pretrained/{rig_name}: the shipped network's learned patterns"}
+    save_patterns(patterns, DEFAULT_PATTERNS / f"{rig_name}.npz")
+    write_bytes_atomic(index_path, tomli_w.dumps(index).encode())
 
 
 def heldout_loss(rig_name: str = "mini", device: str = "cpu") -> float:

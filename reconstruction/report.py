@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.atomic import atomic_folder, atomic_path, write_bytes_atomic
-from twin.samples import SVBRDFMaps, canonical_anisotropy
+from twin.materials.samples import SVBRDFMaps, canonical_anisotropy
 
 from .metrics import (ANISOTROPY_RATIO, _angle_deg, _axis_angle_deg, _check_mask, _fmt_any, _fmt_value,
                       _tangent_error_deg, flatten_metrics, to_jsonable)

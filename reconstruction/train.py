@@ -10,7 +10,7 @@ A run folder holds
     checkpoint.json          step, config, rig digest, RNG states (lists), wall time, sha256 of the tensor
                              file; written LAST, so a checkpoint is valid only when its JSON names it
                              (the tensor file's sha256 must match)
-    patterns.npz             the learned patterns as a twin.patterns file: 64 frames (32 signed pairs,
+    patterns.npz             the learned patterns as a twin.capture.patterns file: 64 frames (32 signed pairs,
                              "learned_00+", "learned_00-", ...) x ALL rig LEDs (bottom LEDs 0) x 3 equal
                              channels; usable as `hemicube capture --patterns`
     loss.png                 train and held-out loss vs step
@@ -232,9 +232,9 @@ def _restore(model, opt, tensors: dict) -> None:
 
 
 def export_patterns(model: AcquisitionNet, rig, note: str = ""):
-    """The learned patterns of view 0 as a twin.patterns.PatternSet over ALL rig LEDs (bottom LEDs 0,
+    """The learned patterns of view 0 as a twin.capture.patterns.PatternSet over ALL rig LEDs (bottom LEDs 0,
     3 equal channels), frames in the capture plan's order."""
-    from twin.patterns import PatternSet
+    from twin.capture.patterns import PatternSet
 
     lv = model.patterns.export_levels(0)  # (2K, L_upper) uint8
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
@@ -300,7 +300,7 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
     t_call = time.perf_counter()  # the limit counts setup too (rig, held-out set, a 2 GB checkpoint load)
     import twin
     from tqdm import tqdm
-    from twin.patterns import save_patterns
+    from twin.capture.patterns import save_patterns
 
     if not isinstance(config, TrainConfig):
         raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")

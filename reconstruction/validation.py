@@ -62,27 +62,21 @@ def _map_params(maps) -> dict:
 
 
 def evaluate(capture, recon, rig, device="cpu") -> tuple[dict, list]:
-    """(metrics, panels) of a reconstruction of a twin capture (which carries ground_truth/)."""
-    from pathlib import Path
-
-    from twin.samples import read_maps
+    """(metrics, panels) of a reconstruction of a twin capture (which carries its ground truth)."""
+    from twin.capture.session import CaptureSession
 
     from .alignment import alignment_error
     from .finetune import simulate_lines
 
-    capture = Path(capture)
-    gt = capture / "ground_truth"
-    if not (gt / "maps").is_dir():
-        raise ValueError(f"{capture}: no ground_truth/ (a capture of the real device cannot be scored)")
+    session = CaptureSession.open(capture)
+    true_maps = session.ground_truth_maps()
     grid, meas, k = recon.grid, recon.measurements, recon.holdout_line
     R = grid.resolution
     metrics: dict = {"grid": {"resolution": R, "size_mm": grid.size_mm, "texel_mm": grid.texel_mm},
                      "holdout_line": k, "timings_s": dict(recon.timings)}
 
-    metrics["alignment"] = alignment_error(recon.alignment, np.load(gt / "pixel_texel_cam00.npy"),
-                                           np.load(gt / "pixel_texel_cam01.npy"))
+    metrics["alignment"] = alignment_error(recon.alignment, session.pixel_texel(0), session.pixel_texel(1))
 
-    true_maps = read_maps(gt / "maps")
     truth = resample_maps(true_maps, grid.size_mm, R)
     on_sample = truth_coverage(true_maps, grid.size_mm, R)
     metrics["maps"] = map_errors(truth, recon.maps, mask=on_sample)

@@ -85,7 +85,7 @@ def validate_dir(tmp_path_factory):
     is taken once per session; reconstruction tests read it, the main-job test resumes it (verified, not
     retaken)."""
     import twin
-    from twin.capture import capture
+    from twin.capture.runner import capture
 
     out = tmp_path_factory.mktemp("validate")
     capture(twin.load_rig("mini"), "ramps", out / "capture", seed=1, progress=False)
@@ -94,7 +94,7 @@ def validate_dir(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def imported(reference_dir):
-    from twin.opensvbrdf_import import import_opensvbrdf
+    from twin.rig.opensvbrdf_import import import_opensvbrdf
 
     return import_opensvbrdf(reference_dir)
 
@@ -118,7 +118,7 @@ def pickle_bomb_array(marker) -> np.ndarray:
 
 def assert_rigs_identical(a, b) -> None:
     """Every array bit-equal with the same dtype, every camera bit-equal, same scalars and digest."""
-    from twin.rig import LEDs
+    from twin.rig.model import LEDs
 
     assert a.name == b.name
     assert a.num_leds == b.num_leds

@@ -13,7 +13,7 @@ import torch
 import twin
 from reconstruction.alignment import AlignConfig, AlignmentError, align_views, alignment_error, warp_to_primary
 from reconstruction.patchmatch import PatchCost, patchmatch
-from twin.camera import Camera
+from twin.rig.camera import Camera
 
 GOAL_PX = 0.5  # issue #6: median alignment error <= 0.5 px
 
@@ -24,12 +24,12 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 @pytest.fixture(scope="module")
 def mini_uniform():
     """The two uniform-light photos (k = 129) of a mini-rig capture of the ramps sample (seed 1), rendered,
-    exposed and merged as twin.capture does (only these two photos, to stay fast), with the sidecars."""
-    from twin import pattern_sets
-    from twin.backends import SimBackend
-    from twin.capture import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S
-    from twin.hdr import choose_bracket, merge_hdr
-    from twin.samples import load_sample
+    exposed and merged as twin.capture.runner does (only these two photos, to stay fast), with the sidecars."""
+    from twin.capture import pattern_sets
+    from twin.capture.backends.sim import SimBackend
+    from twin.capture.plan import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S
+    from twin.camera.hdr import choose_bracket, merge_hdr
+    from twin.materials.samples import load_sample
 
     rig = twin.load_rig("mini")
     sim = SimBackend(rig, load_sample("ramps", resolution=128), seed=1)

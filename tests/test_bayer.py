@@ -1,4 +1,4 @@
-"""twin.bayer: PFNC BayerRG12 / BayerRG12p byte layouts (against hand-worked bytes), CFA layouts and
+"""twin.camera.bayer: PFNC BayerRG12 / BayerRG12p byte layouts (against hand-worked bytes), CFA layouts and
 bilinear demosaicing."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from twin.bayer import (cfa_index, demosaic, from_bayer_rg12, mosaic, pack_bayer_rg12p, pfnc_name,
+from twin.camera.bayer import (cfa_index, demosaic, from_bayer_rg12, mosaic, pack_bayer_rg12p, pfnc_name,
                         to_bayer_rg12, unpack_bayer_rg12p)
 
 

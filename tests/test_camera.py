@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from twin.camera import Camera, SensorParams
-from twin.opencv_yaml import OpenCVYamlError, read_opencv_yaml
+from twin.rig.camera import Camera, SensorParams
+from twin.rig.opencv_yaml import OpenCVYamlError, read_opencv_yaml
 
 CAMERAS = ["primary", "secondary"]
 

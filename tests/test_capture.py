@@ -19,8 +19,10 @@ import numpy as np
 import pytest
 
 import twin
-import twin.cli
-from twin.capture import CaptureError, capture, verify
+import hemicube.cli
+from twin.capture.plan import CaptureError
+from twin.capture.runner import capture
+from twin.capture.session import verify
 
 ARGS = ["capture", "--backend", "sim", "--rig", "mini", "--sample", "ramps", "--seed", "1", "--no-progress"]
 
@@ -28,7 +30,7 @@ ARGS = ["capture", "--backend", "sim", "--rig", "mini", "--sample", "ramps", "--
 @pytest.fixture(scope="module")
 def run_a(tmp_path_factory):
     out = tmp_path_factory.mktemp("cap") / "A"
-    assert twin.cli.main(ARGS + ["-o", str(out)]) == 0
+    assert hemicube.cli.main(ARGS + ["-o", str(out)]) == 0
     return out
 
 
@@ -37,9 +39,9 @@ def _manifest(d):
 
 
 def test_session_folder(run_a):
-    from twin.bayer import unpack_bayer_rg12p
-    from twin.exr import read_rgb_exr
-    from twin.samples import read_maps
+    from twin.camera.bayer import unpack_bayer_rg12p
+    from twin.materials.exr import read_rgb_exr
+    from twin.materials.samples import read_maps
 
     m = _manifest(run_a)
     rig = twin.load_rig("mini")
@@ -71,7 +73,7 @@ def test_session_folder(run_a):
 def test_kill_and_resume_is_byte_identical(run_a, tmp_path):
     out = tmp_path / "B"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "twin.cli", *ARGS, "-o", str(out)], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "hemicube.cli", *ARGS, "-o", str(out)], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     done_before = {}
@@ -90,7 +92,7 @@ def test_kill_and_resume_is_byte_identical(run_a, tmp_path):
     assert verify(out) == []  # whatever the manifest lists is complete: atomic writes
     mtimes = {rel: (out / rel).stat().st_mtime_ns for rel in before["files"]}
 
-    assert twin.cli.main(ARGS + ["-o", str(out)]) == 0
+    assert hemicube.cli.main(ARGS + ["-o", str(out)]) == 0
     after = _manifest(out)
     assert verify(out) == [] and len(after["photos"]) == 196
     for stem, rec in before["photos"].items():  # finished photos were verified, not redone

@@ -1,4 +1,4 @@
-"""`hemicube rig info / export` through twin.cli.main."""
+"""`hemicube rig info / export` through hemicube.cli.main."""
 from __future__ import annotations
 
 import json
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import twin
-from twin.cli import main
+from hemicube.cli import main
 
 from conftest import assert_rigs_identical
 

@@ -1,4 +1,4 @@
-"""twin.cross_plot: per-LED vectors on the unfolded cube, and pattern pictures.
+"""twin.view.cross_plot: per-LED vectors on the unfolded cube, and pattern pictures.
 (`paper` and `mini` are the session fixtures of conftest.py.)"""
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 from matplotlib import colormaps
 from PIL import Image
 
-from twin.cross import CROSS_SHAPE
-from twin.cross_plot import (BACKGROUND, GRID_SCALE, MARGIN_PX, SCALE, TITLE_PX, cross_rgb, save_cross_image,
+from twin.rig.cross import CROSS_SHAPE
+from twin.view.cross_plot import (BACKGROUND, GRID_SCALE, MARGIN_PX, SCALE, TITLE_PX, cross_rgb, save_cross_image,
                              save_pattern_image)
-from twin.patterns import PatternSet, save_patterns
+from twin.capture.patterns import PatternSet, save_patterns
 
 
 def test_scalar_values_land_on_their_cross_pixels(paper):
@@ -101,7 +101,7 @@ def test_save_pattern_image_bad_index(tmp_path, mini):
 
 
 def test_cli_show_pattern(tmp_path, mini, capsys):
-    from twin.cli import main
+    from hemicube.cli import main
 
     path = tmp_path / "p.npz"
     save_patterns(_gradient_patterns(mini, 2), path)

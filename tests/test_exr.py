@@ -1,4 +1,4 @@
-"""twin.exr: round trips (float bit-exact, half within its rounding), channel order, attributes, errors
+"""twin.materials.exr: round trips (float bit-exact, half within its rounding), channel order, attributes, errors
 and atomic writes."""
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-import twin.exr as exr
-from twin.exr import (ExrError, check_finite, read_exr, read_exr_attributes, read_rgb_exr, write_exr,
+import twin.materials.exr as exr
+from twin.materials.exr import (ExrError, check_finite, read_exr, read_exr_attributes, read_rgb_exr, write_exr,
                       write_rgb_exr)
 
 

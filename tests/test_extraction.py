@@ -15,14 +15,15 @@ import pytest
 import torch
 
 import twin
-from calibration.colour_matrix import apply_colour_matrix, colour_matrix
-from calibration.flat_field import flat_field
+from twin.camera.correction import apply_colour_matrix, colour_matrix, flat_field
+from twin.capture.plan import CaptureError
+from twin.capture.session import CaptureSession
 from reconstruction.data import synthesize
 from reconstruction.extraction import (ExtractionError, GRID_SHRINK, TextureGrid, corrected, detect_sample_size,
                                        extract, texture_grid)
 from reconstruction.latents import check_patterns, decode, read_latent_exr, write_latent_exr
 from reconstruction.pretrained import load_pretrained
-from twin.sensor import apply_optics
+from twin.camera.sensor import apply_optics
 
 
 class _ExactAlignment:
@@ -39,16 +40,16 @@ class _ExactAlignment:
 
 @pytest.fixture(scope="module")
 def extracted(validate_dir, mini):
-    cap = validate_dir / "capture"
+    cap = CaptureSession.open(validate_dir / "capture")
     grid = texture_grid(cap, mini, 32)
     return cap, grid, extract(cap, mini, grid, _ExactAlignment(mini))
 
 
 def _true_params(cap, rig, grid):
-    from twin.imaging import _bilinear
-    from twin.samples import read_maps, world_to_texel
+    from twin.camera.imaging import _bilinear
+    from twin.materials.samples import world_to_texel
 
-    gt = read_maps(cap / "ground_truth" / "maps")
+    gt = cap.ground_truth_maps()
     pos = grid.positions(rig)
     rc = world_to_texel(gt, rig.sample, pos)
     b = _bilinear(gt, rc[:, 0], rc[:, 1])
@@ -129,26 +130,33 @@ def test_calibrations_undo_the_optics(mini):
 
 def test_bad_captures_are_refused(extracted, mini, tmp_path):
     cap, grid, _ = extracted
-    with pytest.raises(ExtractionError, match="not a capture folder"):
-        texture_grid(tmp_path, mini, 16)
-    broken = tmp_path / "broken"
-    shutil.copytree(cap, broken, ignore=shutil.ignore_patterns("raw", "ground_truth"))
-    (broken / "img00070_cam00.exr").unlink()
-    with pytest.raises(ExtractionError, match="img00070_cam00.exr is missing"):
-        extract(broken, mini, grid, _ExactAlignment(mini))
     from reconstruction.pipeline import reconstruct
 
+    with pytest.raises(CaptureError, match="not a capture folder"):
+        reconstruct(tmp_path, tmp_path / "recon", progress=False)
+    broken = tmp_path / "broken"
+    shutil.copytree(cap.dir, broken, ignore=shutil.ignore_patterns("raw", "ground_truth", ".lock"))
+    (broken / "img00070_cam00.exr").unlink()
+    with pytest.raises(CaptureError, match="img00070_cam00.exr: listed in the manifest but missing"):
+        extract(CaptureSession.open(broken), mini, grid, _ExactAlignment(mini))
     out = tmp_path / "recon"
-    with pytest.raises(ExtractionError, match="img00070_cam00.exr is missing"):
+    with pytest.raises(CaptureError, match="img00070_cam00.exr: listed in the manifest but missing"):
         reconstruct(broken, out, progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken"]  # no partial or temporary folder
-    from twin.exr import read_rgb_exr, write_rgb_exr
+    import json
 
+    from twin.atomic import file_sha256
+    from twin.materials.exr import read_rgb_exr, write_rgb_exr
+
+    # a device that wrote NaN (and checksummed it): the photo verifies, its values are refused
     img = read_rgb_exr(broken / "img00000_cam00.exr")
     img[3, 4, 1] = np.nan
     write_rgb_exr(broken / "img00000_cam00.exr", img)
-    with pytest.raises(ExtractionError, match="NaN or Inf"):
-        extract(broken, mini, grid, _ExactAlignment(mini))
+    doc = json.loads((broken / "manifest.json").read_text())
+    doc["files"]["img00000_cam00.exr"] = file_sha256(broken / "img00000_cam00.exr")
+    (broken / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(CaptureError, match="NaN or Inf"):
+        extract(CaptureSession.open(broken), mini, grid, _ExactAlignment(mini))
     with pytest.raises(ExtractionError, match="another rig"):
         extract(cap, twin.load_rig("paper"), grid, _ExactAlignment(mini))
     with pytest.raises(ExtractionError, match="grid resolution"):

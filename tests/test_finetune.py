@@ -245,7 +245,7 @@ def test_shipped_network_on_twin_line_measurements(mini):
     """The pipeline's case: the shipped mini network's latents of synthetic texels, fine-tuned against the
     twin's exact linear-light measurements (network units); every pass lowers its objective."""
     import twin
-    import twin.pattern_sets
+    import twin.capture.pattern_sets
     from reconstruction.data import LUMITEXEL_SCALE, PARAM_KEYS, SamplingConfig, sample_parameters, synthesize
     from reconstruction.pretrained import load_pretrained
 
@@ -255,7 +255,7 @@ def test_shipped_network_on_twin_line_measurements(mini):
     views = torch.stack([synthesize(mini, p, "primary"), synthesize(mini, p, "secondary")], 1)
     with torch.no_grad():
         latent = torch.cat(model.encode(model.measure(views)), 1).numpy()
-    w_all = twin.pattern_sets.linear_lights(mini).weights
+    w_all = twin.capture.pattern_sets.linear_lights(mini).weights
     lines = twin.measurements(mini, *[p[k].numpy() for k in PARAM_KEYS], patterns=w_all, camera="primary",
                               transparency=np.zeros(n), visibility=True) * LUMITEXEL_SCALE
     w = w_all[:, np.flatnonzero(~mini.is_bottom)]

@@ -14,8 +14,8 @@ import torch
 import twin
 from reconstruction.data import LUMITEXEL_SCALE, synthesize
 from reconstruction.fitting import FitConfig, FitResult, fit_ggx, fit_method, to_maps
-from twin.pattern_sets import linear_lights
-from twin.samples import SVBRDFMaps, read_maps, write_maps
+from twin.capture.pattern_sets import linear_lights
+from twin.materials.samples import SVBRDFMaps, read_maps, write_maps
 
 
 def _tilt(deg, azimuth_deg):

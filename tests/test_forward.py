@@ -15,7 +15,7 @@ import pytest
 import warp as wp
 
 import twin
-from twin.forward import OPENSVBRDF_PHOTO_SCALE, OPENSVBRDF_RENDER_SCALE
+from twin.optics.inputs import OPENSVBRDF_PHOTO_SCALE, OPENSVBRDF_RENDER_SCALE
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -23,7 +23,7 @@ DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
 @pytest.fixture(scope="module")
 def opensvbrdf_rig(reference_dir):
-    from twin.opensvbrdf_import import import_opensvbrdf
+    from twin.rig.opensvbrdf_import import import_opensvbrdf
 
     return import_opensvbrdf(reference_dir)
 
@@ -138,7 +138,7 @@ def test_bottom_leds_transmission_closed_form(mini, device):
 def test_led_profiles_closed_form(mini, profile, device):
     """Psi: cos^p (p = 0 is an isotropic point source, p = 2.5 a narrower beam) and the two-cubic
     polynomial form, against float64 numpy. Lambertian plate at the centre."""
-    from twin.emitter import led_u_axes
+    from twin.optics.emitter import led_u_axes
 
     prof = np.zeros((mini.num_leds, 8), np.float32)
     if profile == "cosine-power":

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from twin import ggx
-
+from twin.optics import ggx
 DEVICES = ["cpu"] + (["cuda"] if wp.get_cuda_device_count() > 0 else [])
 # (αx, αy): isotropic at both ends of the supported range, anisotropic both ways, extreme anisotropy.
 ALPHAS = [(0.006, 0.006), (0.1, 0.3), (0.5, 0.05), (1.0, 1.0), (0.006, 1.0), (0.25, 0.25)]

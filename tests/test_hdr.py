@@ -1,6 +1,6 @@
-"""twin.hdr: bracket choice and the noise-optimal merge, on frames from twin.sensor.simulate_raw.
+"""twin.camera.hdr: bracket choice and the noise-optimal merge, on frames from twin.camera.sensor.simulate_raw.
 
-Error bound used below (the noise model of twin.hdr): a photosite's merged value has predicted
+Error bound used below (the noise model of twin.camera.hdr): a photosite's merged value has predicted
 standard deviation sigma = 1 / sqrt(weights_sum) from shot, read and quantisation noise; the fixed
 PRNU pattern (relative sigma `prnu`, the same in every frame) adds prnu * L, so the predicted relative
 error is sqrt(1 / (weights_sum L^2) + prnu^2). The z-scores of the merge against the truth must have
@@ -13,10 +13,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from twin.bayer import demosaic, mosaic
-from twin.camera import SensorParams
-from twin.hdr import choose_bracket, frame_radiance, merge_hdr, saturation_threshold_dn
-from twin.sensor import expected_dn, saturation_electrons, saturation_radiance, simulate_raw
+from twin.camera.bayer import demosaic, mosaic
+from twin.rig.camera import SensorParams
+from twin.camera.hdr import choose_bracket, frame_radiance, merge_hdr, saturation_threshold_dn
+from twin.camera.sensor import expected_dn, saturation_electrons, saturation_radiance, simulate_raw
 
 S = SensorParams()
 H, W = 192, 256

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 import twin
-from twin.imaging import KIND_MARKER, KIND_SAMPLE, render, trace_pixels
+from twin.camera.imaging import KIND_MARKER, KIND_SAMPLE, render, trace_pixels
 
 
 def uniform_maps(size=120.0, R=32, rho_d=0.5, rho_s=0.0, alpha=0.2, beta=0.0):
-    """A homogeneous sample, built directly (twin.samples validates the same fields)."""
+    """A homogeneous sample, built directly (twin.materials.samples validates the same fields)."""
     f = np.float32
     return SimpleNamespace(rho_d=np.full((R, R, 3), rho_d, f), rho_s=np.full((R, R, 3), rho_s, f),
                            alpha=np.full((R, R, 2), alpha, f), normal=np.tile(np.array([0, 0, 1], f), (R, R, 1)),

@@ -6,7 +6,7 @@ import pytest
 
 import twin
 from twin import RigError
-from twin.opensvbrdf_import import import_opensvbrdf
+from twin.rig.opensvbrdf_import import import_opensvbrdf
 
 from conftest import NUM_UPPER, assert_rigs_identical, copy_reference, pickle_bomb_array
 
@@ -53,7 +53,7 @@ def test_import_cross_equals_released_preview(imported, released_preview):
 
 
 def test_cli_import_matches_library_import(reference_dir, imported, tmp_path, capsys):
-    from twin.cli import main
+    from hemicube.cli import main
 
     out = tmp_path / "rig"
     assert main(["rig", "import-opensvbrdf", str(reference_dir), "-o", str(out)]) == 0
@@ -113,7 +113,7 @@ def test_import_rejects_inconsistent_cam_pos(reference_dir, tmp_path):
 
 
 def test_import_cli_missing_lights_bin_exits_2(reference_dir, tmp_path, capsys):
-    from twin.cli import main
+    from hemicube.cli import main
 
     folder = copy_reference(reference_dir, tmp_path / "lightstage")
     (folder / "lights.bin").unlink()

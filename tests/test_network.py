@@ -251,8 +251,8 @@ def test_export_levels_round_trip(shared):
         assert np.array_equal(minus, np.rint(np.clip(-w, 0, None) * 255).astype(np.int32))
         assert np.array_equal(plus[:, 3], np.full(8, 255)) and np.array_equal(minus[:, 4], np.full(8, 255))
         assert not lv[:, :3].any()
-    # the same frames as the capture plan's splitter (twin.pattern_sets.signed_pairs), in the same order
-    from twin.pattern_sets import signed_pairs
+    # the same frames as the capture plan's splitter (twin.capture.pattern_sets.signed_pairs), in the same order
+    from twin.capture.pattern_sets import signed_pairs
 
     ps = signed_pairs(np.repeat(q[0].numpy()[..., None], 3, axis=2), [f"learned_{k:02d}" for k in range(8)],
                       "mini")

@@ -1,4 +1,4 @@
-"""Pattern files (twin.patterns): exact round trips, 8-bit quantisation, clear errors, atomic writes."""
+"""Pattern files (twin.capture.patterns): exact round trips, 8-bit quantisation, clear errors, atomic writes."""
 from __future__ import annotations
 
 import os
@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from twin.patterns import FORMAT_NAME, FORMAT_VERSION, PatternError, PatternSet, load_patterns, save_patterns
+from twin.capture.patterns import FORMAT_NAME, FORMAT_VERSION, PatternError, PatternSet, load_patterns, save_patterns
 
 from conftest import pickle_bomb_array
 

@@ -6,7 +6,7 @@ import pytest
 
 import twin
 from reconstruction.pretrained import heldout_loss, load_pretrained, pretrained_info, pretrained_patterns
-from twin.capture import build_patterns
+from twin.capture.plan import build_patterns
 
 
 def test_shipped_mini_model_reaches_its_documented_heldout_loss():

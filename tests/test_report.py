@@ -12,7 +12,7 @@ from reconstruction.metrics import (
     Threshold, check, flatten_metrics, format_table, image_scores, map_errors, resample_maps, truth_coverage,
 )
 from reconstruction.report import Panel, RenderPanel, map_panels, render_panel, write_report
-from twin.samples import canonical_anisotropy, load_sample
+from twin.materials.samples import canonical_anisotropy, load_sample
 
 RES = 32
 STATS = ("median", "mean", "p90")

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 import twin
 from twin import RigError
-from twin.cross import CROSS_SHAPE, cross_image
+from twin.rig.cross import CROSS_SHAPE, cross_image
 
 
 # --- item 2: counts -------------------------------------------------------------------------------

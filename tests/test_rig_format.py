@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 import twin
 from twin import RigError
-from twin.rig_format import load_rig_dir
+from twin.rig.format import load_rig_dir
 
 from conftest import assert_rigs_identical, pickle_bomb_array
 
@@ -98,7 +98,7 @@ def test_round_trip_imported(imported, tmp_path):
 
 
 def test_saved_arrays_keep_their_dtypes(mini, mini_dir):
-    from twin.rig import LEDs
+    from twin.rig.model import LEDs
 
     arrays = read_npz(mini_dir / "leds.npz")
     assert set(arrays) == set(LEDs.ARRAYS)

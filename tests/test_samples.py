@@ -1,5 +1,5 @@
-"""twin.samples: the validated map model, orientation, the map-folder contract, canonical anisotropy
-(checked through twin.ggx.brdf) and the built-in procedural samples."""
+"""twin.materials.samples: the validated map model, orientation, the map-folder contract, canonical anisotropy
+(checked through twin.optics.ggx.brdf) and the built-in procedural samples."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,10 +8,10 @@ import os
 import numpy as np
 import pytest
 
-import twin.samples as samples
-from twin.exr import read_exr_attributes, read_rgb_exr, write_rgb_exr
-from twin.rig import SamplePlane
-from twin.samples import (BUILTIN_SAMPLES, MAP_FILES, RAMPS_REFERENCE, SampleError, SVBRDFMaps, builtin_sample,
+import twin.materials.samples as samples
+from twin.materials.exr import read_exr_attributes, read_rgb_exr, write_rgb_exr
+from twin.rig.model import SamplePlane
+from twin.materials.samples import (BUILTIN_SAMPLES, MAP_FILES, RAMPS_REFERENCE, SampleError, SVBRDFMaps, builtin_sample,
                           canonical_anisotropy, load_sample, ramp_regions, read_maps, texel_positions,
                           world_to_texel, write_maps)
 
@@ -383,7 +383,7 @@ def test_half_float_third_party_maps_are_accepted(tmp_path):
 
 
 def _brdf_of(maps, rows, cols, wi, wo):
-    from twin.ggx import brdf
+    from twin.optics.ggx import brdf
 
     return brdf(wi, wo, maps.normal[rows, cols], maps.tangent[rows, cols], maps.rho_d[rows, cols],
                 maps.rho_s[rows, cols], maps.alpha[rows, cols, 0], maps.alpha[rows, cols, 1])

@@ -1,4 +1,4 @@
-"""twin.sensor: the raw-frame simulator against its noise model (means, photon-transfer variances,
+"""twin.camera.sensor: the raw-frame simulator against its noise model (means, photon-transfer variances,
 fixed patterns, clipping, CFA), determinism, and the numpy optics helpers.
 
 Noise model of one pixel in DN (g electrons per DN, mu mean electrons incl. dark signal):
@@ -13,9 +13,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from twin.bayer import cfa_index
-from twin.camera import Camera, SensorParams
-from twin.sensor import (GAUSS_LAMBDA, apply_crosstalk, apply_optics, apply_vignetting, effective_gain,
+from twin.camera.bayer import cfa_index
+from twin.rig.camera import Camera, SensorParams
+from twin.camera.sensor import (GAUSS_LAMBDA, apply_crosstalk, apply_optics, apply_vignetting, effective_gain,
                          expected_dn, fixed_pattern, saturation_radiance, simulate_raw, vignetting_factor)
 
 S = SensorParams()  # IMX540-like defaults: 12 bit, RG, 2.4 e/DN, FW 9800 e, read 2.3 e, black 16 DN

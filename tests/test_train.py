@@ -11,8 +11,8 @@ import twin
 from reconstruction.network import AcquisitionNet
 from reconstruction.train import (CHECKPOINT_JSON, CHECKPOINT_TENSORS, TrainConfig, TrainError, export_patterns,
                                   is_pair_step, load_checkpoint, train)
-from twin.cli import main
-from twin.patterns import load_patterns
+from hemicube.cli import main
+from twin.capture.patterns import load_patterns
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +131,7 @@ def test_patterns_show_and_measurements(run200, tmp_path, capsys):
     B = np.asarray(B)
     assert B.shape == (P, 64, 3) and np.all(np.isfinite(B)) and np.all(B >= 0) and B.max() > 0
 
-    from twin.capture import build_patterns  # what `hemicube capture --patterns` does with the file
+    from twin.capture.plan import build_patterns  # what `hemicube capture --patterns` does with the file
 
     plan = build_patterns(rig, ps)
     assert plan.names[:64] == ps.names and np.array_equal(plan.levels[:64], ps.levels)

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import json
 
-import twin.cli
+import hemicube.cli
 from reconstruction.validation import thresholds_for
-from twin.samples import load_sample, write_maps
+from twin.materials.samples import load_sample, write_maps
 
 
 def test_main_job_passes_its_thresholds(validate_dir, capsys):
-    rc = twin.cli.main(["validate", "-o", str(validate_dir), "--no-progress"])
+    rc = hemicube.cli.main(["validate", "-o", str(validate_dir), "--no-progress"])
     out = capsys.readouterr().out
     assert "PASS" in out and "FAIL" not in out, out
     assert rc == 0, out
@@ -37,7 +37,7 @@ def test_validate_any_map_folder(tmp_path, capsys):
     thresholds apply off the default grid: the run must complete and report)."""
     maps = write_maps(load_sample("brushed_metal", resolution=64), tmp_path / "maps")
     out = tmp_path / "v"
-    rc = twin.cli.main(["validate", "--sample", str(maps), "--resolution", "16", "-o", str(out), "--no-progress",
+    rc = hemicube.cli.main(["validate", "--sample", str(maps), "--resolution", "16", "-o", str(out), "--no-progress",
                         "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert rc == 0 and doc["passed"] and doc["thresholds"] == []

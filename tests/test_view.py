@@ -1,11 +1,11 @@
-"""twin.view: the 3-D rig view renders off-screen, and LED colours land where the LEDs are.
+"""twin.view.rig_view: the 3-D rig view renders off-screen, and LED colours land where the LEDs are.
 (`paper` and `mini` are the session fixtures of conftest.py.)"""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from twin.view import board_rectangle, camera_frustum, default_view
+from twin.view.rig_view import board_rectangle, camera_frustum, default_view
 
 pv = pytest.importorskip("pyvista")
 from PIL import Image  # noqa: E402  (pillow comes with pyvista)
@@ -60,7 +60,7 @@ def test_frustum_reaches_the_sample_plane(mini):
 
 # --- rendering ------------------------------------------------------------------------------------------
 def test_cli_show_rig_writes_a_picture(tmp_path, capsys):
-    from twin.cli import main
+    from hemicube.cli import main
 
     out = tmp_path / "rig.png"
     assert main(["show", "rig", "--rig", "mini", "-o", str(out)]) == 0
@@ -74,7 +74,7 @@ def test_cli_show_rig_writes_a_picture(tmp_path, capsys):
 
 
 def test_show_rig_default_output_and_values(tmp_path, monkeypatch, mini):
-    from twin.view import show_rig
+    from twin.view.rig_view import show_rig
 
     monkeypatch.chdir(tmp_path)
     out = show_rig(mini, values=np.linspace(0, 1, mini.num_leds), window_size=(320, 240))
@@ -123,7 +123,7 @@ def test_led_colours_land_on_the_leds(mini):
     """One LED of the +y wall (the far wall, seen face-on through the cut-away -y wall) is pure green,
     all others pure red. Projected with the plotter's camera, the green LED's pixel must be green and a
     red LED's pixel red."""
-    from twin.view import build_plotter
+    from twin.view.rig_view import build_plotter
 
     rig = mini
     W, H = 800, 600

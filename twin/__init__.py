@@ -5,26 +5,35 @@ Public API (names kept stable for later issues and external tests):
     twin.lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, ...)
     twin.measurements(rig, ..., patterns)
 Heavy modules (warp, torch, pyvista) are imported lazily.
+
+Sub-packages, one per physical thing (docs/architecture.md has the picture):
+    twin.rig        the rig model (LEDs, boards, cameras' calibration, sample plane, holder frame), its folder
+                    format, the built-in rigs, the OpenSVBRDF importer, the cross layout, units and frames
+    twin.optics     GGX, the LED emission profile, the Warp kernels of Eq. 1-2, the public forward API, torch
+    twin.materials  SVBRDF texture maps (the OpenSVBRDF contract), built-in samples, EXR files
+    twin.camera     image formation (pixel rays, hits, radiance), the sensor, Bayer/PFNC formats, HDR merge
+    twin.capture    pattern files and sets, the capture plan, the session folder, device backends
+    twin.view       the pyvista view of the rig, cross-image plots
 """
 from __future__ import annotations
 
-from .rig import Rig, RigError  # noqa: F401
+from twin.rig.model import Rig, RigError  # noqa: F401
 
 __all__ = ["Rig", "RigError", "load_rig", "save_rig", "lumitexels", "measurements"]
 
 
 def load_rig(name_or_dir) -> Rig:
-    """A built-in rig by name ("paper", "mini") or a rig folder (twin.rig_format)."""
+    """A built-in rig by name ("paper", "mini") or a rig folder (twin.rig.format)."""
     from pathlib import Path
 
-    from .builtin_rigs import BUILTIN
+    from twin.rig.builtin import BUILTIN
 
     if isinstance(name_or_dir, str) and name_or_dir in BUILTIN:
         return _builtin(name_or_dir)
     path = Path(name_or_dir)
     if not path.exists():
         raise RigError(f"{name_or_dir!r} is neither a built-in rig ({', '.join(BUILTIN)}) nor an existing folder")
-    from .rig_format import load_rig_dir
+    from twin.rig.format import load_rig_dir
 
     return load_rig_dir(path)
 
@@ -33,7 +42,7 @@ _CACHE: dict = {}
 
 
 def _builtin(name: str) -> Rig:
-    from .builtin_rigs import BUILTIN
+    from twin.rig.builtin import BUILTIN
 
     if name not in _CACHE:  # rigs are immutable, so one instance can be shared
         _CACHE[name] = BUILTIN[name]()
@@ -41,18 +50,18 @@ def _builtin(name: str) -> Rig:
 
 
 def save_rig(rig: Rig, directory, overwrite: bool = False):
-    from .rig_format import save_rig as _save
+    from twin.rig.format import save_rig as _save
 
     return _save(rig, directory, overwrite=overwrite)
 
 
 def lumitexels(*args, **kwargs):
-    from .forward import lumitexels as _f
+    from twin.optics.forward import lumitexels as _f
 
     return _f(*args, **kwargs)
 
 
 def measurements(*args, **kwargs):
-    from .forward import measurements as _f
+    from twin.optics.forward import measurements as _f
 
     return _f(*args, **kwargs)

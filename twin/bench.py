@@ -81,9 +81,9 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     import warp as wp
 
     import twin
-    from twin import lumitexel as K
-    from twin.forward import CONVENTIONS, _device_inputs, _led_inputs, make_options
-    from twin.fused import fused_measurements
+    from twin.optics import lumitexel as K
+    from twin.optics.inputs import CONVENTIONS, _device_inputs, _led_inputs, make_options
+    from twin.optics.fused import fused_measurements
     
     from dataclasses import replace
 
@@ -161,19 +161,6 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     return result
 
 
-def run_bench(args) -> dict:
-    if args.bench_command == "lumitexel":
-        return bench_lumitexel(args.rig, args.device, args.leds, args.points, args.patterns, args.repeats,
-                               not args.no_compile)
-    if args.bench_command == "capture":
-        return bench_capture(args.rig, args.device, args.sample, args.resolution, args.hdr_photos)
-    if args.bench_command == "reconstruct":
-        from reconstruction.bench import bench_reconstruct
-
-        return bench_reconstruct(args.rig, args.device, args.texels, args.network)
-    raise ValueError(f"unknown benchmark {args.bench_command!r}")
-
-
 def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, hdr_photos=4, seed=0):
     """Seconds for the capture plan's simulation (both views, every photo), by stage: pixel tracing,
     radiance of every pattern (fused kernel, and the unfused baseline: materialised lumitexels per chunk
@@ -183,13 +170,13 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     import warp as wp
 
     import twin
-    from twin.capture import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S, _frame_id, build_patterns, paper_plan
-    from twin.hdr import choose_bracket, merge_hdr
-    from twin.imaging import render, trace_pixels
-    from twin.samples import load_sample
-    from twin.sensor import simulate_raw
+    from twin.capture.plan import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S, build_patterns, frame_id, paper_plan
+    from twin.camera.hdr import choose_bracket, merge_hdr
+    from twin.camera.imaging import render, trace_pixels
+    from twin.materials.samples import load_sample
+    from twin.camera.sensor import simulate_raw
 
-    from twin.forward import _init
+    from twin.optics.inputs import _init
 
     _init()  # quiet: the JSON must be the only output
     rig = twin.load_rig(rig_name)
@@ -230,7 +217,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
         exposures = np.clip(choose_bracket(max(float(img.max()), 1e-12), cam.sensor, n=BRACKET,
                                            ratio=BRACKET_RATIO), *EXPOSURE_LIMITS_S)
         t0 = time.perf_counter()
-        raws = [simulate_raw(img, sensor=cam.sensor, exposure_s=float(t), seed=seed, frame=_frame_id(photo, j),
+        raws = [simulate_raw(img, sensor=cam.sensor, exposure_s=float(t), seed=seed, frame=frame_id(photo, j),
                              camera_key=photo.camera, device=device) for j, t in enumerate(exposures)]
         t_sensor += time.perf_counter() - t0
         if merged < hdr_photos:

@@ -1,6 +1,6 @@
 """Exposure brackets: choosing them and merging raw frames to linear radiance (numpy).
 
-`merge_hdr` inverts `twin.sensor.simulate_raw` frame by frame and combines the frames with noise-optimal
+`merge_hdr` inverts `twin.camera.sensor.simulate_raw` frame by frame and combines the frames with noise-optimal
 weights. The result is in the unit of simulate_raw's input radiance (the frame's electrons divided by
 electrons_per_radiance_s and the exposure).
 
@@ -22,7 +22,7 @@ would give low readings larger weights and bias the merge low by about 1/S. The 
 sum_k w_k L_k / sum_k w_k, whose predicted standard deviation is 1 / sqrt(weights_sum).
 
 The merge runs on the raw mosaic (one colour per photosite) and the merged mosaic is demosaiced once
-(`twin.bayer.demosaic`, bilinear). This is the brief's "demosaic, divide by exposure, combine" with the
+(`twin.camera.bayer.demosaic`, bilinear). This is the brief's "demosaic, divide by exposure, combine" with the
 two linear steps swapped: demosaicing each frame first would let a saturated photosite leak into its
 unsaturated neighbours' interpolated colours, while on the mosaic every photosite is excluded exactly
 in the frames where it is saturated.
@@ -43,9 +43,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bayer import demosaic
-from .camera import SensorParams
-from .sensor import dn_max, effective_gain, saturation_electrons
+from twin.camera.bayer import demosaic
+from twin.rig.camera import SensorParams
+from twin.camera.sensor import dn_max, effective_gain, saturation_electrons
 
 DEFAULT_MARGIN = 0.05  # frames above 95% of the saturation signal are excluded
 

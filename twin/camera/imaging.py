@@ -9,11 +9,11 @@ The path of a pixel (issue "virtual capture", §2):
      board elsewhere (up to the board's edge), else nothing (black);
   3. the surface's parameters there: bilinear texel lookup for the sample (normals and tangents
      re-normalised and re-orthogonalised), fixed materials for frame, markers and board;
-  4. the radiance under each pattern, through the Warp forward model (twin.forward: Eq. 1-2 with the rig's
+  4. the radiance under each pattern, through the Warp forward model (twin.optics.forward: Eq. 1-2 with the rig's
      LED intensities, Psi, visibility and the bottom LEDs through the acrylic and the transparency map),
      averaged over the sub-pixel rays, then the LED-RGB -> camera-RGB crosstalk and the vignetting.
 The frame's 1.5 mm inner walls are not modelled as seen surfaces (both cameras look at them at < 45 deg
-from above; they cover < 1 px at the modelled resolutions); they do cast shadows (twin.forward's V).
+from above; they cover < 1 px at the modelled resolutions); they do cast shadows (twin.optics.forward's V).
 """
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ def _marker_bits(frame) -> np.ndarray:
 
 
 def trace_pixels(rig, camera_name: str, maps=None, supersample: int | None = None) -> PixelSurfaces:
-    """Trace every pixel of a camera into the rig (steps 1-3). `maps`: a twin.samples.SVBRDFMaps, or
+    """Trace every pixel of a camera into the rig (steps 1-3). `maps`: a twin.materials.samples.SVBRDFMaps, or
     None for the empty board (the transparency reference)."""
     cam = rig.camera(camera_name)
     sp = rig.sample
@@ -160,7 +160,7 @@ def trace_pixels(rig, camera_name: str, maps=None, supersample: int | None = Non
         Hm, Wm = maps.rho_d.shape[:2]
         half = maps.size_mm / 2
         on_sample = on_board & (abs(x) < half) & (abs(y) < half)
-        col = (x[on_sample] + half) / maps.size_mm * Wm - 0.5  # texel-centre convention (twin.samples)
+        col = (x[on_sample] + half) / maps.size_mm * Wm - 0.5  # texel-centre convention (twin.materials.samples)
         row = (y[on_sample] + half) / maps.size_mm * Hm - 0.5
         texel[on_sample] = np.stack([row, col], axis=1)
         kind[on_sample] = KIND_SAMPLE
@@ -199,9 +199,9 @@ def render(rig, camera_name: str, surfaces: PixelSurfaces, patterns: np.ndarray,
     drive (8-bit levels / 255). method: "fused" (twin.measurements' fused kernel), "materialise" (the
     lumitexels of a chunk of rays, then the projection: on the CPU one BLAS product per channel, on CUDA
     the projection kernel), or "auto" (fused on CUDA, materialise on the CPU, the faster there)."""
-    import twin
-    from twin.forward import validate_patterns
-    from twin.sensor import apply_crosstalk, vignetting_factor
+    from twin.camera.sensor import apply_crosstalk, vignetting_factor
+    from twin.optics.forward import lumitexels, measurements
+    from twin.optics.inputs import validate_patterns
 
     cam = rig.camera(camera_name)
     w = validate_patterns(patterns, rig.num_leds).astype(np.float32)
@@ -218,11 +218,11 @@ def render(rig, camera_name: str, surfaces: PixelSurfaces, patterns: np.ndarray,
         idx = live[i:i + chunk]
         args = surfaces.forward_args(idx)
         if cuda or method == "fused":
-            out[idx] = twin.measurements(rig, **args, patterns=w, transparency=surfaces.transparency[idx],
-                                         camera=camera_name, device=device, method=method, **forward_kw)
+            out[idx] = measurements(rig, **args, patterns=w, transparency=surfaces.transparency[idx],
+                                    camera=camera_name, device=device, method=method, **forward_kw)
         else:
-            m = twin.lumitexels(rig, **args, transparency=surfaces.transparency[idx], camera=camera_name,
-                                device=device, **forward_kw)
+            m = lumitexels(rig, **args, transparency=surfaces.transparency[idx], camera=camera_name,
+                           device=device, **forward_kw)
             for c in range(3):  # one BLAS product per channel
                 out[idx, :, c] = m[:, :, c] @ w[:, :, c].T
     S2 = surfaces.supersample ** 2

@@ -1,9 +1,9 @@
 """The camera sensor of the virtual capture: scene radiance at each pixel -> 12-bit raw digital numbers.
 
 `simulate_raw` runs one Warp thread per pixel (CPU here, CUDA on a GPU, the same kernel). For pixel
-(row i, col j) of a camera with parameters `twin.camera.SensorParams`:
+(row i, col j) of a camera with parameters `twin.rig.camera.SensorParams`:
 
-1. colour filter: channel c = CFA(sensor.bayer)[i % 2, j % 2] (`twin.bayer`; RG: R at (0,0), G at
+1. colour filter: channel c = CFA(sensor.bayer)[i % 2, j % 2] (`twin.camera.bayer`; RG: R at (0,0), G at
    (0,1) and (1,0), B at (1,1));
 2. mean photo-electrons   mu = L[c] * electrons_per_radiance_s * t * (1 + PRNU_ij) + dark_current * t;
 3. shot noise             n ~ Poisson(mu) (Warp's `wp.poisson`) for mu < GAUSS_LAMBDA, else
@@ -50,8 +50,8 @@ import math
 import numpy as np
 import warp as wp
 
-from .bayer import cfa_index, cfa_table
-from .camera import SensorParams
+from twin.camera.bayer import cfa_index, cfa_table
+from twin.rig.camera import SensorParams
 
 wp.set_module_options({"fast_math": False})
 
@@ -277,7 +277,7 @@ def apply_crosstalk(rgb, matrix) -> np.ndarray:
 
 
 def apply_optics(rgb, camera, flat_field=None) -> np.ndarray:
-    """Crosstalk then vignetting with a `twin.camera.Camera`'s own sensor parameters: the radiance that
+    """Crosstalk then vignetting with a `twin.rig.camera.Camera`'s own sensor parameters: the radiance that
     `simulate_raw` expects for that camera."""
     s = camera.sensor
     return apply_vignetting(apply_crosstalk(rgb, s.crosstalk), camera.K, camera.width, camera.height,

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .patterns import PatternSet
+from twin.capture.patterns import PatternSet
 
 NUM_LINEAR_LIGHTS = 64
 
@@ -76,7 +76,7 @@ def linear_lights(rig, count: int = NUM_LINEAR_LIGHTS) -> PatternSet:
     for k, idx in enumerate(lines):
         w[k, idx] = 1.0
     return PatternSet.from_weights(w, [f"line_{k:02d}" for k in range(len(lines))], rig.name,
-                                   note="linear lights: one board row (or column) each, twin.pattern_sets")
+                                   note="linear lights: one board row (or column) each, twin.capture.pattern_sets")
 
 
 def uniform(rig) -> PatternSet:

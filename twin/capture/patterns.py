@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import write_bytes_atomic
+from twin.atomic import write_bytes_atomic
 
 FORMAT_NAME = "hemicube-patterns"
 FORMAT_VERSION = 1

@@ -37,7 +37,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from .atomic import atomic_path
+from twin.atomic import atomic_path
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 RGB = ("R", "G", "B")

@@ -12,7 +12,7 @@ Parameters (per texel, all float32)
     rho_d (H, W, 3)        diffuse albedo ρd ∈ [0, 1] (linear RGB)
     rho_s (H, W, 3)        specular albedo ρs ∈ [0, 20] (the reference's ps_range is 10, 20 for paper)
     alpha (H, W, 2)        GGX roughness (αx, αy) ∈ [0.001, 1.5]; αx is along the tangent t
-    normal (H, W, 3)       unit shading normal n, world frame (twin.units), n_z > 0
+    normal (H, W, 3)       unit shading normal n, world frame (twin.rig.units), n_z > 0
     tangent (H, W, 3)      unit tangent t ⟂ n, world frame: the αx axis; b = n × t is the αy axis
     transparency (H, W)    β ∈ [0, 1], the fraction of bottom light let through (0 = opaque)
     size_mm                side of the square sample (mm); texels are square, so H == W
@@ -45,8 +45,8 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from .atomic import atomic_folder
-from .exr import ExrError, check_finite, read_rgb_exr, write_rgb_exr
+from twin.atomic import atomic_folder
+from twin.materials.exr import ExrError, check_finite, read_rgb_exr, write_rgb_exr
 
 SAMPLE_FORMAT = "hemicube-sample"
 SAMPLE_FORMAT_VERSION = 1
@@ -586,6 +586,10 @@ def _satin_weave(res: int, seed: int, size_mm: float) -> dict:
 
 
 _BUILDERS = {"ramps": _ramps, "brushed_metal": _brushed_metal, "satin_weave": _satin_weave}
+# one line per built-in sample for `hemicube samples list` (the builders' docstrings say the rest)
+CHARACTER = {"ramps": "one parameter ramped per region (cf. Fig. 13)",
+             "brushed_metal": "dark steel, brushed: strong anisotropy along curving streaks",
+             "satin_weave": "5-harness satin: two orthogonal thread families, bumps, gaps"}
 
 
 def _integer(value, what: str) -> int:
@@ -621,6 +625,22 @@ def builtin_sample(name: str, resolution: int = 128, seed: int = 0,
 
 
 builtin_sample.__doc__ += "\n\n" + "\n\n".join(f"{k}: {_BUILDERS[k].__doc__}" for k in BUILTIN_SAMPLES)
+
+
+def sample_ranges(name: str, resolution: int = 64, seed: int = 0) -> dict:
+    """What `hemicube samples list` shows of a built-in sample: each parameter's range over its texels (at
+    `resolution`, `seed`), the largest anisotropy max(αx/αy, αy/αx), the largest normal tilt (°) from the
+    sample plane's normal (+z), and a one-line character."""
+    m = builtin_sample(name, resolution, seed)
+    a = m.alpha.astype(np.float64)
+    tilt = np.degrees(np.arccos(np.clip(m.normal[..., 2].astype(np.float64), -1, 1)))
+
+    def span(x):
+        return [round(float(x.min()), 4), round(float(x.max()), 4)]
+
+    return {"rho_d": span(m.rho_d), "rho_s": span(m.rho_s), "alpha": span(a),
+            "anisotropy_max": round(float((a.max(-1) / a.min(-1)).max()), 2),
+            "tilt_max_deg": round(float(tilt.max()), 1), "description": CHARACTER[name]}
 
 
 def load_sample(name_or_dir, resolution: int = 128) -> SVBRDFMaps:

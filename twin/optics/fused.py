@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .lumitexel import Options, fused_loop_kernel, led_response
+from twin.optics.lumitexel import Options, fused_loop_kernel, led_response
 
 TILE_P = 16  # points per block
 TILE_L = 16  # LEDs per chunk

@@ -5,7 +5,7 @@ One function, `led_response`, evaluates Eq. 1 for one surface point and one LED:
     m[c] = S * I_l[c] * A_l(-wi) * V(l, p) * f_c(wi, wo) * (wi . n)+ / r^2          (upper LEDs)
     m[c] = S * I_l[c] * A_l(-wi) * V(l, p) * T_acrylic * beta / pi * (-wi . z)+ / r^2  (bottom LEDs)
 
-with A_l = Psi_l * (-wi . n_l)+ (twin.emitter). Bottom LEDs light the sample from below through the
+with A_l = Psi_l * (-wi . n_l)+ (twin.optics.emitter). Bottom LEDs light the sample from below through the
 diffusing acrylic board and the sample's transparency beta; both diffuse, so the transmitted radiance is
 Lambertian (1/pi) and independent of the view and of the shading normal (the geometric plane normal z
 sets the irradiance cosine). Refraction in the thin slab is neglected. Every kernel is generic over
@@ -24,13 +24,13 @@ from typing import Any
 
 import warp as wp
 
-from .emitter import led_intensity
-from .ggx import ggx_brdf, local_frame
+from twin.optics.emitter import led_intensity
+from twin.optics.ggx import ggx_brdf, local_frame
 
 
 @wp.struct
 class Options:
-    """Convention constants (twin.forward.CONVENTIONS), float32; kernels cast them to their float type."""
+    """Convention constants (twin.optics.inputs.CONVENTIONS), float32; kernels cast them to their float type."""
 
     g_mode: int
     f_mode: int
@@ -153,7 +153,7 @@ def fused_loop_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_
                       lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
                       o: Options, w: wp.array2d(dtype=Any), out: wp.array2d(dtype=Any)):
     """One thread per point: B[p, :] accumulated LED by LED, the lumitexel never stored. The row
-    out[p, :] stays in the CPU's cache; on CUDA fused_tile_kernel (twin.fused) is used instead."""
+    out[p, :] stays in the CPU's cache; on CUDA fused_tile_kernel (twin.optics.fused) is used instead."""
     p = wp.tid()
     for l in range(lpos.shape[0]):
         m = led_response(pos[p], frames[p], wo_l[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p], lpos[l], lnrm[l],

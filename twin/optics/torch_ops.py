@@ -13,8 +13,8 @@ import numpy as np
 import torch
 import warp as wp
 
-from . import lumitexel as K
-from .forward import CONVENTIONS, _led_inputs, make_options, rig_arrays, validate_patterns, validate_points
+from twin.optics import lumitexel as K
+from twin.optics.inputs import CONVENTIONS, _led_inputs, make_options, rig_arrays, validate_patterns, validate_points
 
 
 def _wp_device(t: torch.Tensor) -> str:

@@ -6,9 +6,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .camera import Camera, cross3, dot3, orthonormalise, unit3
-from .cross import layout_pixels
-from .rig import PROFILE_PARAMS, Board, BottomBoard, HolderFrame, LEDs, Rig, SamplePlane
+from twin.rig.camera import Camera, cross3, dot3, orthonormalise, unit3
+from twin.rig.cross import layout_pixels
+from twin.rig.model import PROFILE_PARAMS, Board, BottomBoard, HolderFrame, LEDs, Rig, SamplePlane
 
 # Released upper-LED layout (reference §1.3): per 32x32 tile, the position of its first LED and the
 # steps (mm) along the fast and slow indices. Tile t belongs to board t // 2; board column =
@@ -154,7 +154,7 @@ def paper_rig() -> Rig:
 
 
 def _default_profile(n: int) -> np.ndarray:
-    """Cosine profile parameters (twin.emitter): exponent 1 = Lambertian emitter behind its diffuser."""
+    """Cosine profile parameters (twin.optics.emitter): exponent 1 = Lambertian emitter behind its diffuser."""
     p = np.zeros((n, PROFILE_PARAMS), np.float32)
     p[:, 0] = 1.0
     return p

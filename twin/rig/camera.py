@@ -1,6 +1,6 @@
 """Pinhole camera with OpenCV's 5-coefficient distortion model (Brown-Conrady: k1, k2, p1, p2, k3).
 
-Frames and pixel conventions are those of `twin.units`. The projection is checked against
+Frames and pixel conventions are those of `twin.rig.units`. The projection is checked against
 `cv2.projectPoints` in the tests.
 """
 from __future__ import annotations

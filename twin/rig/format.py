@@ -2,31 +2,30 @@
 
     RIG_DIR/rig.toml    format = "hemicube-rig", version, name, length_unit, led_profile, notes,
                         [sample], [frame], [bottom], [[boards]], [[cameras]] (+ [cameras.sensor])
-    RIG_DIR/leds.npz    the per-LED arrays of twin.rig.LEDs
+    RIG_DIR/leds.npz    the per-LED arrays of twin.rig.model.LEDs
     RIG_DIR/frame.npz   marker_ids, marker_corners (only when the rig has a holder frame)
 
-Loading validates everything (twin.rig.validate) and never unpickles: npz files are opened with
+Loading validates everything (twin.rig.model.validate) and never unpickles: npz files are opened with
 allow_pickle=False. Floats are written with repr() in TOML and in their own dtype in npz, so
 save -> load round-trips bit-exactly. Files may declare length_unit = "m"; lengths are converted to mm
-on load (twin.units). Saving is atomic: the folder is assembled beside the target and renamed into place.
+on load (twin.rig.units). Saving is atomic: the folder is assembled beside the target and renamed into place.
 """
 from __future__ import annotations
 
 import io
 import os
 import tomllib
-from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
 import tomli_w
 
-from .atomic import atomic_folder
-from .camera import Camera, SensorParams
-from .rig import RIG_FORMAT_VERSION, Board, BottomBoard, HolderFrame, LEDs, Rig, RigError, SamplePlane
-from .units import MM_PER, to_mm
+from twin.atomic import atomic_folder
+from twin.rig.camera import Camera, SensorParams
+from twin.rig.model import (FORMAT_NAME, RIG_FORMAT_VERSION, Board, BottomBoard, HolderFrame, LEDs, Rig, RigError,
+                            SamplePlane, rig_to_toml_dict)
+from twin.rig.units import MM_PER, to_mm
 
-FORMAT_NAME = "hemicube-rig"
 LENGTH_FIELDS = {  # what scales with the length unit
     "sample": ("origin", "max_size"),
     "frame": ("inner_size", "outer_size", "height", "marker_size"),
@@ -35,34 +34,6 @@ LENGTH_FIELDS = {  # what scales with the length unit
 
 
 # --- writing -----------------------------------------------------------------------------------------
-def rig_to_toml_dict(rig: Rig) -> dict:
-    doc = {
-        "format": FORMAT_NAME,
-        "version": RIG_FORMAT_VERSION,
-        "name": rig.name,
-        "length_unit": rig.length_unit,
-        "led_profile": rig.led_profile,
-        "notes": rig.notes,
-        "sample": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(rig.sample).items()},
-        "boards": [asdict(b) for b in rig.boards],
-        "cameras": [_camera_dict(c) for c in rig.cameras.values()],
-    }
-    if rig.frame is not None:
-        doc["frame"] = {f.name: getattr(rig.frame, f.name) for f in fields(rig.frame)
-                        if f.name not in ("marker_ids", "marker_corners")}
-    if rig.bottom is not None:
-        doc["bottom"] = asdict(rig.bottom)
-    return doc
-
-
-def _camera_dict(c: Camera) -> dict:
-    sensor = asdict(c.sensor)
-    sensor["vignetting"] = list(sensor["vignetting"])
-    sensor["crosstalk"] = [list(r) for r in sensor["crosstalk"]]
-    return {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(), "dist": c.dist.tolist(),
-            "R": c.R.tolist(), "t": c.t.tolist(), "assumed": c.assumed, "note": c.note, "sensor": sensor}
-
-
 def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
@@ -76,18 +47,6 @@ def _files(rig: Rig) -> dict[str, bytes]:
         files["frame.npz"] = _npz_bytes({"marker_ids": rig.frame.marker_ids,
                                          "marker_corners": rig.frame.marker_corners})
     return files
-
-
-def canonical_bytes(rig: Rig) -> bytes:
-    """A canonical serialisation for hashing: the TOML text and every array's dtype, shape and bytes."""
-    parts = [tomli_w.dumps(rig_to_toml_dict(rig)).encode()]
-    arrays = {f"leds.{k}": getattr(rig.leds, k) for k in LEDs.ARRAYS}
-    if rig.frame is not None:
-        arrays |= {"frame.marker_ids": rig.frame.marker_ids, "frame.marker_corners": rig.frame.marker_corners}
-    for k in sorted(arrays):
-        a = np.ascontiguousarray(arrays[k])
-        parts.append(f"{k}:{a.dtype.str}:{a.shape}".encode() + a.tobytes())
-    return b"\0".join(parts)
 
 
 def save_rig(rig: Rig, directory: str | os.PathLike, overwrite: bool = False) -> Path:

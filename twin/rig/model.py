@@ -1,7 +1,7 @@
 """The rig model: an immutable, validated description of the light-hemicube.
 
 Everything downstream (kernels, virtual capture, network, calibration, real backends, views) reads this.
-Units and frames are those of `twin.units` (millimetres, right-handed, +z out of the sample, OpenCV
+Units and frames are those of `twin.rig.units` (millimetres, right-handed, +z out of the sample, OpenCV
 cameras). LED index order follows the released `lights.bin` for the 12,288 upper LEDs
 (l = 1024*tile + 32*slow + fast, reference §1.3) so that pattern files and lumitexels are
 interchangeable with the reference; bottom LEDs, when present, follow them.
@@ -9,14 +9,15 @@ interchangeable with the reference; bottom LEDs, when present, follow them.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from types import MappingProxyType
 from typing import Mapping
 
 import numpy as np
+import tomli_w
 
-from .camera import Camera
-from .cross import CROSS_SHAPE
+from twin.rig.camera import Camera
+from twin.rig.cross import CROSS_SHAPE
 
 RIG_FORMAT_VERSION = 1
 LED_PROFILES = ("cosine", "polynomial")
@@ -52,11 +53,11 @@ class LEDs:
     board       (L,)   index into Rig.boards
     row, col    (L,)   position on the board
     intensity   (L, 3) relative RGB radiant intensity at full drive (W/sr in the physical convention)
-    profile     (L, 8) angular-profile parameters Psi (meaning set by Rig.led_profile, see twin.emitter)
+    profile     (L, 8) angular-profile parameters Psi (meaning set by Rig.led_profile, see twin.optics.emitter)
     diffuser_radius (L,) mm, radius of the LED's diffuser disc (LEDs are point emitters in the kernels:
                 at >= 300 mm a <= 5 mm disc changes the inverse-square term by < (5/300)^2 = 3e-4)
     is_bottom   (L,)   True for the LEDs under the translucent acrylic board
-    cross_pixel (L, 2) (col, row) in the unfolded-cube image (twin.cross)
+    cross_pixel (L, 2) (col, row) in the unfolded-cube image (twin.rig.cross)
     """
 
     positions: np.ndarray
@@ -216,7 +217,7 @@ class BottomBoard:
 @dataclass(frozen=True)
 class Rig:
     """The whole device. Build it with the constructor (it validates), `twin.load_rig`, or the
-    builders in `twin.builtin_rigs`."""
+    builders in `twin.rig.builtin`."""
 
     name: str
     leds: LEDs
@@ -267,8 +268,6 @@ class Rig:
     def digest(self) -> str:
         """sha256 of the rig's canonical serialisation (used in capture manifests and as a cache key)."""
         if "_digest" not in self.__dict__:  # immutable, so computed once; bypasses the frozen __setattr__
-            from .rig_format import canonical_bytes
-
             self.__dict__["_digest"] = hashlib.sha256(canonical_bytes(self)).hexdigest()
         return self.__dict__["_digest"]
 
@@ -302,7 +301,7 @@ def validate(rig: Rig) -> None:
     leds = rig.leds
     L = len(leds)
     if rig.length_unit != "mm":
-        raise RigError(f"in-memory rigs are in mm (twin.units); got length_unit={rig.length_unit!r}")
+        raise RigError(f"in-memory rigs are in mm (twin.rig.units); got length_unit={rig.length_unit!r}")
     if rig.led_profile not in LED_PROFILES:
         raise RigError(f"led_profile {rig.led_profile!r} unknown; expected one of {LED_PROFILES}")
     if L == 0:
@@ -384,3 +383,47 @@ def _check_camera(name: str, cam: Camera, sample: SamplePlane) -> None:
     if not inside.all():
         raise RigError(f"camera {name!r} cannot see the whole {sample.max_size:g} mm sample: corners project "
                        f"to {uv.round(1).tolist()} in a {cam.width}x{cam.height} image")
+
+
+# --- canonical serialisation: the rig.toml document and the digest (twin.rig.format writes the files) ---
+FORMAT_NAME = "hemicube-rig"
+
+
+def rig_to_toml_dict(rig: Rig) -> dict:
+    doc = {
+        "format": FORMAT_NAME,
+        "version": RIG_FORMAT_VERSION,
+        "name": rig.name,
+        "length_unit": rig.length_unit,
+        "led_profile": rig.led_profile,
+        "notes": rig.notes,
+        "sample": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(rig.sample).items()},
+        "boards": [asdict(b) for b in rig.boards],
+        "cameras": [_camera_dict(c) for c in rig.cameras.values()],
+    }
+    if rig.frame is not None:
+        doc["frame"] = {f.name: getattr(rig.frame, f.name) for f in fields(rig.frame)
+                        if f.name not in ("marker_ids", "marker_corners")}
+    if rig.bottom is not None:
+        doc["bottom"] = asdict(rig.bottom)
+    return doc
+
+
+def _camera_dict(c: Camera) -> dict:
+    sensor = asdict(c.sensor)
+    sensor["vignetting"] = list(sensor["vignetting"])
+    sensor["crosstalk"] = [list(r) for r in sensor["crosstalk"]]
+    return {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(), "dist": c.dist.tolist(),
+            "R": c.R.tolist(), "t": c.t.tolist(), "assumed": c.assumed, "note": c.note, "sensor": sensor}
+
+
+def canonical_bytes(rig: Rig) -> bytes:
+    """A canonical serialisation for hashing: the TOML text and every array's dtype, shape and bytes."""
+    parts = [tomli_w.dumps(rig_to_toml_dict(rig)).encode()]
+    arrays = {f"leds.{k}": getattr(rig.leds, k) for k in LEDs.ARRAYS}
+    if rig.frame is not None:
+        arrays |= {"frame.marker_ids": rig.frame.marker_ids, "frame.marker_corners": rig.frame.marker_corners}
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k])
+        parts.append(f"{k}:{a.dtype.str}:{a.shape}".encode() + a.tobytes())
+    return b"\0".join(parts)

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .builtin_rigs import UPPER_BOARDS
-from .camera import Camera
-from .cross import CROSS_SHAPE
-from .opencv_yaml import OpenCVYamlError, read_opencv_yaml
-from .rig import PROFILE_PARAMS, Board, LEDs, Rig, RigError, SamplePlane
+from twin.rig.builtin import UPPER_BOARDS
+from twin.rig.camera import Camera
+from twin.rig.cross import CROSS_SHAPE
+from twin.rig.opencv_yaml import OpenCVYamlError, read_opencv_yaml
+from twin.rig.model import PROFILE_PARAMS, Board, LEDs, Rig, RigError, SamplePlane
 
 REQUIRED = ("lights.bin", "cam_pos.bin", "intrinsic.yml", "extrinsic.yml")
 CAMERA_CENTRE_TOLERANCE_MM = 0.01  # cam_pos.bin vs -R^T t: equal to float32 precision in the release
@@ -81,7 +81,7 @@ def _read_preview(path: Path, n: int) -> np.ndarray:
 
 
 def _formula_cross(board, row, col):
-    from .cross import layout_pixels
+    from twin.rig.cross import layout_pixels
 
     keys = np.array([UPPER_BOARDS[b][2] for b in range(len(UPPER_BOARDS))])[board]
     out = np.zeros((len(board), 2), np.int64)

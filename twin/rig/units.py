@@ -4,8 +4,8 @@ Length
     **Millimetres** everywhere inside the twin (rig files, kernels, samples, captures). This is the unit
     of the released OpenSVBRDF configuration (`lights.bin`, `extrinsic.yml`; reference §1.6), so an
     imported rig needs no conversion. Conversion happens only at the edges: the physical radiometric
-    convention of the forward model (`twin.forward`) converts distances to metres, and user files may
-    declare `length_unit = "m"`, which `twin.rig_format` converts on load.
+    convention of the forward model (`twin.optics.forward`) converts distances to metres, and user files may
+    declare `length_unit = "m"`, which `twin.rig.format` converts on load.
 
 World frame
     Right-handed, **+z out of the sample** (up), the frame of the released device files: the sample plane

@@ -1,4 +1,4 @@
-"""Pictures of per-LED vectors on the unfolded cube (the "cross" image of twin.cross, paper Fig. 5).
+"""Pictures of per-LED vectors on the unfolded cube (the "cross" image of twin.rig.cross, paper Fig. 5).
 
 `hemicube show pattern` calls `save_pattern_image`. Images are composed at exact pixel sizes (each cross
 pixel becomes a SCALE x SCALE block, nearest neighbour) with matplotlib's Agg canvas, never pyplot, so
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cross import CROSS_SHAPE, cross_image
+from twin.rig.cross import CROSS_SHAPE, cross_image
 
 BACKGROUND = 0.12  # grey level of canvas pixels outside every board: dark, but not "LED off" black
 CMAP = "inferno"
@@ -67,7 +67,7 @@ def _save_tiles(tiles: list[tuple[np.ndarray, str]], output, scale: int,
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from .atomic import atomic_path
+    from twin.atomic import atomic_path
 
     H, W = CROSS_SHAPE
     th, tw = H * scale, W * scale

@@ -2,7 +2,7 @@
 
 `hemicube show rig` calls `show_rig`. It renders off-screen to a PNG when an output is given or no display
 exists, and opens an interactive window otherwise. pyvista (and vtk) are imported inside the functions:
-the GPU benchmark machines do not have them, and `import twin.view` must not fail there.
+the GPU benchmark machines do not have them, and `import twin.view.rig_view` must not fail there.
 
 The view is fixed and deterministic: an oblique look down into the cube from outside it, on the -y side
 and about 30 degrees above the horizon. Every exterior view looks through at least one board, so the
@@ -122,7 +122,10 @@ def default_view(rig) -> tuple[tuple, tuple, tuple]:
 # --- the scene -----------------------------------------------------------------------------------------
 def build_plotter(rig, values=None, window_size=(1200, 900), off_screen: bool = True):
     """A pyvista Plotter holding the rig scene with the fixed view (`show_rig` renders it)."""
-    import pyvista as pv
+    try:
+        import pyvista as pv
+    except ImportError:
+        raise ValueError("the 3-D rig view needs pyvista: pip install 'hemicube-twin[view]'") from None
 
     kind, colours = led_colours(values, rig.num_leds)
     pl = pv.Plotter(off_screen=off_screen, window_size=tuple(int(s) for s in window_size))
@@ -257,7 +260,7 @@ def show_rig(rig, values=None, output=None, window_size=(1200, 900)) -> Path | N
     if output is None and has_display():
         build_plotter(rig, values, window_size, off_screen=False).show()
         return None
-    from .atomic import atomic_path
+    from twin.atomic import atomic_path
 
     output = Path(output if output is not None else "rig.png")
     pl = build_plotter(rig, values, window_size, off_screen=True)

@@ -1,13 +1,7 @@
-"""Device backends: the capture loop drives LEDs and cameras through this interface, so the same code runs
-the simulator and, later, the real hardware (a serial LED controller and Basler cameras).
-
-    backend.show(levels)                         drive the LEDs: (L, 3) uint8 levels
-    backend.meter(camera) -> float               the brightest radiance expected (for the exposure bracket)
-    backend.grab(camera, exposure_s, frame) -> (H, W) uint16 raw Bayer frame (BayerRG12 values)
-
-`SimBackend` renders with the twin. Its scene radiance depends linearly on the LED drive (Eq. 2), so it
-renders each camera's lumitexel projection once for every pattern of the plan (`prepare`) and `show` only
-selects one; a pattern it was not prepared for is rendered on demand.
+"""The simulator backend (twin.capture.backends has the interface): `SimBackend` renders with the twin. Its
+scene radiance depends linearly on the LED drive (Eq. 2), so it renders each camera's lumitexel projection
+once for every pattern of the plan (`prepare`) and `show` only selects one; a pattern it was not prepared
+for is rendered on demand.
 """
 from __future__ import annotations
 
@@ -22,10 +16,9 @@ class SimBackend:
         self._surfaces: dict = {}
         self._radiance: dict = {}
         self._levels: np.ndarray | None = None
-        self._key = None
 
     def surfaces(self, camera: str):
-        from .imaging import trace_pixels
+        from twin.camera.imaging import trace_pixels
 
         if camera not in self._surfaces:
             self._surfaces[camera] = trace_pixels(self.rig, camera, self.maps)
@@ -33,7 +26,7 @@ class SimBackend:
 
     def prepare(self, camera: str, patterns) -> None:
         """Render `patterns` (a PatternSet) for `camera` in one pass (one lumitexel evaluation per ray)."""
-        from .imaging import render
+        from twin.camera.imaging import render
 
         todo = [k for k, lv in enumerate(patterns.levels) if (camera, lv.tobytes()) not in self._radiance]
         if not todo:
@@ -53,7 +46,7 @@ class SimBackend:
             raise RuntimeError("no pattern shown yet: call show() first")
         key = (camera, self._levels.tobytes())
         if key not in self._radiance:
-            from .patterns import PatternSet
+            from twin.capture.patterns import PatternSet
 
             self.prepare(camera, PatternSet(self._levels[None], ("adhoc",), self.rig.name))
         return self._radiance[key]
@@ -62,11 +55,9 @@ class SimBackend:
         return float(self._current(camera).max())
 
     def grab(self, camera: str, exposure_s: float, frame: int) -> np.ndarray:
-        from .sensor import simulate_raw
+        from twin.camera.sensor import simulate_raw
 
         cam = self.rig.camera(camera)
         return simulate_raw(self._current(camera), sensor=cam.sensor, exposure_s=exposure_s, seed=self.seed,
                             frame=frame, camera_key=f"{self.rig.digest()}/{camera}", device=self.device)
 
-
-BACKENDS = {"sim": SimBackend}

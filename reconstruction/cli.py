@@ -1,0 +1,96 @@
+"""The reconstruction's sub-commands of `hemicube` (registered by the front, hemicube.cli): reconstruct,
+train, and bench reconstruct."""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+
+def cmd_reconstruct(args) -> int:
+    from .pipeline import ReconstructConfig, reconstruct
+
+    over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm),
+                              ("holdout_line", args.holdout_line), ("network", args.network),
+                              ("device", args.device)) if v is not None}
+    r = reconstruct(args.capture, args.output, replace(ReconstructConfig(), **over), progress=not args.no_progress)
+    print(f"reconstruction: {r.directory} ({r.grid.resolution}^2 texels over {r.grid.size_mm:.1f} mm; "
+          + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in r.timings.items()) + ")")
+    return 0
+
+
+def cmd_train(args) -> int:
+    from .train import TrainConfig, train
+
+    cfg = TrainConfig(rig=args.rig)
+    over = {k: v for k, v in (("steps", args.steps), ("batch", args.batch), ("lr", args.lr), ("seed", args.seed),
+                              ("device", args.device), ("eval_every", args.eval_every),
+                              ("checkpoint_every", args.checkpoint_every),
+                              ("pair_fraction", args.pair_fraction), ("dropout", args.dropout))
+            if v is not None}
+    cfg = replace(cfg, **over)
+    m = train(cfg, args.output, progress=not args.no_progress, time_limit=args.time_limit)
+    ips = m["iterations_per_s"]
+    print(f"trained {m['steps']} steps in {args.output}: final held-out loss (Eq. 3) {m['final_heldout_loss']:.6g}"
+          + (f", {ips:.2f} it/s, {m['lumitexels_per_s']:.0f} lumitexels/s" if ips else ""))
+    if m["stopped_on_time_limit"]:
+        print(f"stopped on the time limit ({args.time_limit:g} s) at step {m['steps']} of {cfg.steps}; "
+              "run the same command again to resume")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import bench_reconstruct
+
+    print(json.dumps(bench_reconstruct(args.rig, args.device, args.texels, args.network), indent=2))
+    return 0
+
+
+def register(sub) -> None:
+    """Add the reconstruction's sub-commands to the front's parser."""
+    from .pipeline import ReconstructConfig
+    from .train import TrainConfig
+
+    rc, tc = ReconstructConfig(), TrainConfig()
+    s = sub.add_parser("reconstruct", help="capture folder -> latents and OpenSVBRDF maps")
+    s.add_argument("capture", help="a capture folder (hemicube capture, or the real device's)")
+    s.add_argument("-o", "--output", required=True, help="reconstruction folder (replaced whole when done)")
+    s.add_argument("--resolution", type=int, help=f"texture grid texels per side (default: {rc.resolution})")
+    s.add_argument("--size-mm", type=float, help="texture grid side in mm (default: detected from the bottom-lit "
+                   "photos, shrunk 6.5%% a side, reference §6.1)")
+    s.add_argument("--holdout-line", type=int, help="line photo (0-63) left out of fine-tuning and fitting "
+                   "(default: the brightest over the sample)")
+    s.add_argument("--network", help=f"'pretrained' (the network shipped for the rig) or a `hemicube train` run "
+                   f"folder (default: {rc.network})")
+    s.add_argument("--device", help=f"torch/Warp device: cpu, cuda, cuda:N (default: {rc.device})")
+    s.add_argument("--no-progress", action="store_true", help="no progress output")
+    s.set_defaults(func=cmd_reconstruct)
+
+    s = sub.add_parser("train", help="train the acquisition network (resumable); writes learned patterns")
+    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
+    s.add_argument("--steps", type=int, help=f"optimiser steps in all (default: {tc.steps})")
+    s.add_argument("--batch", type=int, help=f"lumitexels per step (default: {tc.batch})")
+    s.add_argument("--lr", type=float, help=f"Adam learning rate (default: {tc.lr:g})")
+    s.add_argument("--seed", type=int, help=f"seed of the initial weights and the data stream (default: {tc.seed})")
+    s.add_argument("--device", help=f"torch/Warp device: cpu, cuda, cuda:N (default: {tc.device})")
+    s.add_argument("--eval-every", type=int, help=f"steps between held-out evaluations (default: {tc.eval_every})")
+    s.add_argument("--checkpoint-every", type=int, help=f"steps between checkpoints "
+                   f"(default: {tc.checkpoint_every})")
+    s.add_argument("--pair-fraction", type=float, help=f"fraction of albedo-swap steps, 0-1 "
+                   f"(default: {tc.pair_fraction})")
+    s.add_argument("--dropout", type=float, help=f"dropout on every layer but the last, 0-1 (default: {tc.dropout}, "
+                   "paper §6)")
+    s.add_argument("--time-limit", type=float, metavar="SECONDS", help="checkpoint and stop after this many "
+                   "seconds (re-run to resume): chunks for lent machines (default: none)")
+    s.add_argument("-o", "--output", required=True, help="run folder (re-run to resume)")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    s.set_defaults(func=cmd_train)
+
+
+def register_bench(bench) -> None:
+    """Add the reconstruction's benchmarks to the front's `bench` group."""
+    s = bench.add_parser("reconstruct", help="seconds of decode, fine-tuning and fitting, extrapolated to 1024^2")
+    s.add_argument("--rig", default="paper", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
+    s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
+    s.add_argument("--texels", type=int, default=16384, help="synthetic texels timed (default: %(default)s)")
+    s.add_argument("--network", help="a `hemicube train` run folder (default: the shipped one, else untrained)")
+    s.set_defaults(func=cmd_bench)

@@ -1,0 +1,110 @@
+"""The capture session folder's one owner (twin.capture.session): reads verify checksums and name the bad
+file, a second writer is refused at once, and a capture that fails before its first photo leaves nothing."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import twin
+from hemicube.cli import main
+from twin.capture.plan import CaptureError, Photo
+from twin.capture.runner import capture
+from twin.capture.session import CaptureSession, photo_stem
+
+
+@pytest.fixture
+def capture_copy(validate_dir, tmp_path):
+    out = tmp_path / "capture"
+    shutil.copytree(validate_dir / "capture", out, ignore=shutil.ignore_patterns(".lock"))
+    return out
+
+
+def test_reader_gives_what_the_capture_wrote(validate_dir, mini):
+    s = CaptureSession.open(validate_dir / "capture")
+    assert s.verify() == [] and s.rig_digest == mini.digest() and s.sample == "ramps"
+    assert s.rig().digest() == mini.digest()
+    img = s.photo(129, 1)
+    cam = mini.camera(list(mini.cameras)[1])
+    assert img.shape == (cam.height, cam.width, 3) and img.dtype == np.float32
+    raws = s.raw_frames(129, 1)
+    assert len(raws) == 3 and all(r.shape == (cam.height, cam.width) and r.max() <= 4095 for r in raws)
+    assert s.patterns().num_patterns >= 131 - 64 and s.has_ground_truth
+    assert s.ground_truth_maps().resolution == 128 and s.pixel_texel(0).shape[-1] == 2
+
+
+def test_rewritten_photo_stops_reconstruct_naming_it(capture_copy, tmp_path, capsys):
+    """A valid EXR with other values in place of a photo: `hemicube reconstruct` exits non-zero, naming it."""
+    from twin.materials.exr import read_rgb_exr, write_rgb_exr
+
+    victim = capture_copy / f"{photo_stem(70, 0)}.exr"
+    write_rgb_exr(victim, read_rgb_exr(victim) * np.float32(1.01))
+    with pytest.raises(CaptureError, match=victim.name):
+        CaptureSession.open(capture_copy).photo(70, 0)
+    rc = main(["reconstruct", str(capture_copy), "-o", str(tmp_path / "recon"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc != 0 and victim.name in err and "checksum" in err
+    assert not (tmp_path / "recon").exists()  # nothing half-written
+
+
+def test_a_second_writer_is_refused_at_once(tmp_path):
+    out = tmp_path / "busy"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    first = subprocess.Popen([sys.executable, "-m", "hemicube.cli", "capture", "--rig", "mini", "--sample", "ramps",
+                              "--seed", "3", "--no-progress", "-o", str(out)], env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 120
+        while not (out / "manifest.json").exists() and time.time() < deadline and first.poll() is None:
+            time.sleep(0.05)
+        assert first.poll() is None, "the first capture must still be running"
+        t0 = time.perf_counter()
+        with pytest.raises(CaptureError, match=f"in use by another capture \\(pid {first.pid}\\)"):
+            capture(twin.load_rig("mini"), "ramps", out, seed=3, progress=False)
+        assert time.perf_counter() - t0 < 10  # refused at once, not after running to the end
+    finally:
+        first.kill()
+        first.wait()
+    # the lock goes with its process: a killed writer's folder resumes (verified here by taking the lock)
+    CaptureSession.create(out, CaptureSession.open(out).header).close()
+
+
+def test_bad_device_leaves_no_folder(tmp_path, capsys):
+    out = tmp_path / "x"
+    rc = main(["capture", "--rig", "mini", "--device", "cuda:7", "--no-progress", "-o", str(out)])
+    assert rc == 2 and "unknown device 'cuda:7'" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_failure_before_the_first_photo_removes_only_a_new_folder(tmp_path):
+    header = {"format": "hemicube-capture", "version": 1, "rig": "mini", "rig_digest": "x"}
+    with pytest.raises(RuntimeError):
+        with CaptureSession.create(tmp_path / "new", header):
+            raise RuntimeError("the backend failed")
+    assert not (tmp_path / "new").exists()
+    with CaptureSession.create(tmp_path / "kept", header) as s:  # one photo taken, then a failure
+        s.write_photo(Photo(0, "primary", 0, "p", "sample"), [np.zeros((4, 4), np.uint16)],
+                      np.zeros((4, 4, 3), np.float32), {"exposures_s": [1e-3]})
+    with pytest.raises(RuntimeError):
+        with CaptureSession.create(tmp_path / "kept", header):
+            raise RuntimeError("killed later")
+    assert CaptureSession.open(tmp_path / "kept").verify() == []
+
+
+def test_open_refuses_what_is_not_a_capture(tmp_path):
+    with pytest.raises(CaptureError, match="not a capture folder"):
+        CaptureSession.open(tmp_path)
+    (tmp_path / "manifest.json").write_text("{nope")
+    with pytest.raises(CaptureError, match="unreadable manifest"):
+        CaptureSession.open(tmp_path)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(CaptureError, match="not a capture folder; choose another"):
+        CaptureSession.create(tmp_path / "other", {"format": "hemicube-capture", "version": 1})
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"

@@ -1,0 +1,89 @@
+"""The capture plan (reference §6.3 indices, extended by the photos the reference takes separately):
+
+    k 0-63     learned patterns as 32 (+, -) pairs          cameras 0 and 1
+    k 64-127   the 64 linear lights                         camera 0
+    k 128      all bottom LEDs (transparency)               camera 0
+    k 129      uniform light (two-view alignment)           cameras 0 and 1
+    k 130      all bottom LEDs, empty board (reference for transparency: transparency = k128 / k130)
+
+Each photo is an exposure bracket of BRACKET raw frames, BRACKET_RATIO apart, merged to linear HDR
+(twin.camera.hdr). The learned frames default to the patterns a rig carries as data (DEFAULT_PATTERNS: the
+shipped network's for the built-in mini rig, written there by reconstruction.pretrained), else a seeded
+placeholder; `twin` never asks the network for them.
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from twin.capture import pattern_sets
+from twin.capture.patterns import load_patterns
+
+BRACKET = 3  # raw frames per photo
+BRACKET_RATIO = 8.0
+EXPOSURE_LIMITS_S = (20e-6, 1.0)  # the camera's exposure range used by the plan (a2A5328-15ucPRO: 20 us up)
+
+LEARNED = range(0, 64)       # photo indices of the plan (reference §6.3)
+LINES = range(64, 128)
+BOTTOM, UNIFORM, EMPTY_BOTTOM = 128, 129, 130
+
+# per rig name: the learned patterns it carries, and the digest of the rig they were made for
+DEFAULT_PATTERNS = Path(__file__).resolve().parent / "default_patterns"
+
+
+class CaptureError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class Photo:
+    index: int
+    camera: str
+    camera_index: int
+    pattern: str
+    sample: str  # "sample" or "empty"
+
+
+def default_learned(rig):
+    """The learned frames a rig carries (DEFAULT_PATTERNS/index.toml names the file and the rig digest they
+    were made for), or None."""
+    index = DEFAULT_PATTERNS / "index.toml"
+    entry = tomllib.loads(index.read_text()).get(rig.name) if index.is_file() else None
+    if entry is None or entry["rig_digest"] != rig.digest():
+        return None
+    return load_patterns(DEFAULT_PATTERNS / entry["file"])
+
+
+def build_patterns(rig, learned=None):
+    """The plan's pattern set: the learned frames given, else the rig's default ones, else a seeded
+    placeholder."""
+    if learned is None:
+        learned = default_learned(rig) or pattern_sets.placeholder_learned(rig)
+    if learned.num_patterns != len(LEARNED):
+        raise CaptureError(f"the plan needs {len(LEARNED)} learned frames ({len(LEARNED) // 2} signed pairs), "
+                           f"got {learned.num_patterns}")
+    sets = [learned, pattern_sets.linear_lights(rig), pattern_sets.uniform(rig)]
+    if rig.is_bottom.any():
+        sets.append(pattern_sets.bottom_only(rig))
+    return pattern_sets.concatenate(sets, rig.name, note=learned.note)
+
+
+def paper_plan(rig, patterns) -> list[Photo]:
+    cams = list(rig.cameras)
+    names = patterns.names
+    plan = []
+    for k in LEARNED:
+        plan += [Photo(k, cams[c], c, names[k], "sample") for c in range(len(cams))]
+    plan += [Photo(k, cams[0], 0, f"line_{j:02d}", "sample") for j, k in enumerate(LINES)]
+    if "bottom" in names:
+        plan.append(Photo(BOTTOM, cams[0], 0, "bottom", "sample"))
+    plan += [Photo(UNIFORM, cams[c], c, "uniform", "sample") for c in range(len(cams))]
+    if "bottom" in names:
+        plan.append(Photo(EMPTY_BOTTOM, cams[0], 0, "bottom", "empty"))
+    return plan
+
+
+def frame_id(photo: Photo, j: int) -> int:
+    """Counter for the sensor's random stream: unique per (photo, camera, exposure), not per run order."""
+    return (photo.index * 8 + photo.camera_index) * 16 + j

@@ -1,0 +1,318 @@
+"""The capture session folder, and its one owner: the capture loop writes it through `CaptureSession.create`,
+reconstruction and validation read it through `CaptureSession.open`; no other module knows its file names.
+
+    manifest.json               format, version, rig digest, backend, seed, sample, plan (per photo: pattern
+                                name, camera, exposures, frame ids), per-file sha256 ("files")
+    patterns.npz                every pattern used (twin.capture.patterns format)
+    rig/                        the rig folder (the capture is self-contained)
+    img{k:05d}_cam{c:02d}.exr   merged HDR radiance, linear float32 RGB, W m^-2 sr^-1
+    raw/img{k:05d}_cam{c:02d}_e{j}.BayerRG12p   raw frames, GenICam PFNC BayerRG12p (12-bit packed)
+    ground_truth/maps/          the sample's true SVBRDF maps (OpenSVBRDF contract; a twin capture only)
+    ground_truth/pixel_texel_cam{c:02d}.npy   (H, W, 2) float32 true texel (row, col) of each pixel, NaN off it
+    .lock                       held (flock) by the one writer while a capture runs
+
+Writing: every file is written atomically, and the manifest (rewritten atomically after each photo) lists a
+file only once it is complete, so a killed capture resumes: re-running verifies the listed files, keeps the
+verified photos and takes the rest. A folder made with another rig, sample, seed or plan is refused, and so
+is a second writer while the first runs (the lock is the kernel's: it goes with the process, killed or not).
+A folder this writer created is removed again when the capture fails before its first photo.
+Reading: each file is checked against the manifest's sha256 as it is read; the first that fails is named.
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
+from twin.capture.plan import CaptureError, Photo
+
+FORMAT_NAME = "hemicube-capture"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+PATTERNS = "patterns.npz"
+RIG = "rig"
+MAPS = "ground_truth/maps"
+LOCK = ".lock"
+
+
+def photo_stem(index: int, camera_index: int) -> str:
+    return f"img{index:05d}_cam{camera_index:02d}"
+
+
+def _photo_file(index: int, camera_index: int) -> str:
+    return f"{photo_stem(index, camera_index)}.exr"
+
+
+def _raw_file(index: int, camera_index: int, j: int) -> str:
+    return f"raw/{photo_stem(index, camera_index)}_e{j}.BayerRG12p"
+
+
+def _pixel_texel_file(camera_index: int) -> str:
+    return f"ground_truth/pixel_texel_cam{camera_index:02d}.npy"
+
+
+def _read_manifest(directory: Path) -> dict:
+    path = directory / MANIFEST
+    if not path.is_file():
+        raise CaptureError(f"{directory}: not a capture folder (no {MANIFEST})")
+    try:
+        doc = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CaptureError(f"{path}: unreadable manifest ({e})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
+        raise CaptureError(f"{path}: not a {FORMAT_NAME} manifest")
+    if doc.get("version") != FORMAT_VERSION:
+        raise CaptureError(f"{path}: unknown capture format version {doc.get('version')!r}; this twin reads "
+                           f"version {FORMAT_VERSION}")
+    return doc
+
+
+class CaptureSession:
+    """A capture folder and its manifest. Build one with `create` (the writer) or `open` (a reader)."""
+
+    def __init__(self, directory: Path, header: dict, files: dict, photos: dict):
+        self.dir = Path(directory)
+        self.header = header
+        self.files: dict[str, str] = files
+        self.photos: dict[str, dict] = photos
+        self._lock_fd: int | None = None
+        self._created = False
+
+    # --- reading --------------------------------------------------------------------------------------
+    @classmethod
+    def open(cls, directory) -> "CaptureSession":
+        d = Path(directory)
+        doc = _read_manifest(d)
+        files, photos = doc.pop("files", {}), doc.pop("photos", {})
+        return cls(d, doc, dict(files), dict(photos))
+
+    @property
+    def rig_name(self) -> str:
+        return self.header["rig"]
+
+    @property
+    def rig_digest(self) -> str:
+        return self.header["rig_digest"]
+
+    @property
+    def sample(self) -> str:
+        return self.header.get("sample", "a capture")
+
+    def verified(self, rel: str) -> bool:
+        p = self.dir / rel
+        return rel in self.files and p.is_file() and file_sha256(p) == self.files[rel]
+
+    def _checked(self, rel: str) -> Path:
+        """The path of a listed file whose bytes match the manifest, else a CaptureError naming it."""
+        path = self.dir / rel
+        if rel not in self.files:
+            raise CaptureError(f"{self.dir}: {rel} is not in the manifest (an incomplete capture? re-run "
+                               "`hemicube capture` on the folder to finish it)")
+        if not path.is_file():
+            raise CaptureError(f"{path}: listed in the manifest but missing")
+        if file_sha256(path) != self.files[rel]:
+            raise CaptureError(f"{path}: fails its checksum (changed after the capture wrote it)")
+        return path
+
+    def _checked_folder(self, folder: str, absent: str) -> Path:
+        """A listed folder whose every file matches the manifest; `absent` says what it means when none is."""
+        listed = [r for r in self.files if r.startswith(folder + "/")]
+        if not listed:
+            raise CaptureError(f"{self.dir}: {absent}")
+        for rel in listed:
+            self._checked(rel)
+        return self.dir / folder
+
+    def verify(self) -> list[str]:
+        """Listed files whose checksum does not match (empty when all verify)."""
+        return [rel for rel in self.files if not self.verified(rel)]
+
+    def photo(self, index: int, camera_index: int) -> np.ndarray:
+        """(H, W, 3) float32 HDR photo k of camera c, checked against the manifest and for finite values."""
+        from twin.materials.exr import read_rgb_exr
+
+        path = self._checked(_photo_file(index, camera_index))
+        img = read_rgb_exr(path)
+        if not np.all(np.isfinite(img)):
+            raise CaptureError(f"{path}: the photo holds NaN or Inf values")
+        return img
+
+    def raw_frames(self, index: int, camera_index: int) -> list[np.ndarray]:
+        """The (H, W) uint16 raw frames of photo k of camera c, in bracket order."""
+        from twin.camera.bayer import unpack_bayer_rg12p
+
+        rec = self.photos.get(photo_stem(index, camera_index))
+        if rec is None:
+            raise CaptureError(f"{self.dir}: photo {photo_stem(index, camera_index)} was not taken")
+        h, w = rec["raw_shape"]
+        return [unpack_bayer_rg12p(self._checked(_raw_file(index, camera_index, j)).read_bytes(), h, w)
+                for j in range(len(rec["exposures_s"]))]
+
+    def patterns(self):
+        """The patterns the LEDs showed (a twin.capture.patterns.PatternSet)."""
+        from twin.capture.patterns import load_patterns
+
+        return load_patterns(self._checked(PATTERNS))
+
+    def rig(self):
+        """The rig the capture was made with (its rig/ folder), checked against the manifest's digest."""
+        from twin.rig.format import load_rig_dir
+
+        rig = load_rig_dir(self._checked_folder(RIG, "the capture carries no rig folder"))
+        if rig.digest() != self.rig_digest:
+            raise CaptureError(f"{self.dir / RIG}: its digest differs from the manifest's rig_digest")
+        return rig
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(r.startswith(MAPS + "/") for r in self.files)
+
+    def ground_truth_maps(self):
+        """The sample's true SVBRDF maps (a twin capture only)."""
+        from twin.materials.samples import read_maps
+
+        return read_maps(self._checked_folder(MAPS, "no ground truth (a capture of the real device cannot be "
+                                                    "scored)"))
+
+    def pixel_texel(self, camera_index: int) -> np.ndarray:
+        """(H, W, 2) float32: the true texel (row, col) each pixel of camera c sees, NaN off the sample."""
+        return np.load(self._checked(_pixel_texel_file(camera_index)), allow_pickle=False)
+
+    # --- writing --------------------------------------------------------------------------------------
+    @classmethod
+    def create(cls, directory, header: dict) -> "CaptureSession":
+        """Start or resume the capture `header` describes in `directory`, holding its lock until `close`."""
+        d = Path(directory)
+        created = not d.exists()
+        files, photos = {}, {}
+        if (d / MANIFEST).exists():
+            old = _read_manifest(d)
+            mismatch = [k for k in header if old.get(k) != header[k]]
+            if mismatch:
+                raise CaptureError(f"{d} holds a different capture ({', '.join(mismatch)} differ); "
+                                   "choose another folder")
+            files, photos = dict(old.get("files", {})), dict(old.get("photos", {}))
+        elif d.exists() and any(p.name != LOCK for p in d.iterdir()):
+            raise CaptureError(f"{d} exists and is not a capture folder; choose another folder")
+        d.mkdir(parents=True, exist_ok=True)
+        session = cls(d, dict(header), files, photos)
+        session._created = created
+        session._lock()
+        if not (d / MANIFEST).exists():
+            session.save()  # from here on the folder is a capture folder, resumable whatever is killed next
+        return session
+
+    def _lock(self) -> None:
+        fd = os.open(self.dir / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
+            os.close(fd)
+            if e.errno in (errno.EWOULDBLOCK, errno.EACCES):
+                raise CaptureError(f"{self.dir} is in use by another capture (pid {holder}); wait for it or "
+                                   "choose another folder") from None
+            raise
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        self._lock_fd = fd
+
+    def close(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # releases the flock
+            self._lock_fd = None
+
+    def discard_if_new(self) -> None:
+        """After a failure: remove the folder when this writer created it and took no photo yet."""
+        self.close()
+        if self._created and not self.photos:
+            shutil.rmtree(self.dir, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.discard_if_new()
+        return False
+
+    def _write(self, rel: str, data: bytes) -> None:
+        write_bytes_atomic(self.dir / rel, data)
+        self.files[rel] = hashlib.sha256(data).hexdigest()
+
+    def _write_with(self, rel: str, writer) -> None:
+        """`writer(tmp_path)` writes the file; it is renamed into place and checksummed."""
+        path = self.dir / rel
+        with atomic_path(path) as tmp:
+            writer(tmp)
+        self.files[rel] = file_sha256(path)
+
+    def _write_folder(self, folder: str, writer) -> None:
+        """`writer(path)` writes a whole folder (unless its listed files all verify), then each file is listed."""
+        listed = [r for r in self.files if r.startswith(folder + "/")]
+        if listed and all(self.verified(r) for r in listed):
+            return
+        for r in listed:
+            del self.files[r]
+        if (self.dir / folder).exists():
+            shutil.rmtree(self.dir / folder)
+        writer(self.dir / folder)
+        for f in sorted((self.dir / folder).iterdir()):
+            self.files[f"{folder}/{f.name}"] = file_sha256(f)
+
+    def write_setup(self, patterns, rig, maps) -> None:
+        """The files every capture starts with: the patterns, the rig folder and (a twin capture) the true maps."""
+        from twin.materials.samples import write_maps
+        from twin.rig.format import save_rig
+
+        if not self.verified(PATTERNS):
+            self._write(PATTERNS, patterns.to_bytes())
+        self._write_folder(RIG, lambda d: save_rig(rig, d, overwrite=True))
+        if maps is not None:
+            self._write_folder(MAPS, lambda d: write_maps(maps, d))
+        self.save()
+
+    def pixel_texel_done(self, camera_index: int) -> bool:
+        return self.verified(_pixel_texel_file(camera_index))
+
+    def write_pixel_texel(self, camera_index: int, pixel_texel: np.ndarray) -> None:
+        self._write_with(_pixel_texel_file(camera_index),
+                         lambda tmp: np.save(tmp, np.asarray(pixel_texel, np.float32)))
+        self.save()
+
+    def photo_done(self, photo: Photo) -> bool:
+        rec = self.photos.get(photo_stem(photo.index, photo.camera_index))
+        return rec is not None and all(self.verified(r) for r in rec["files"])
+
+    def write_photo(self, photo: Photo, raws: list[np.ndarray], radiance: np.ndarray, record: dict) -> None:
+        """One photo: its raw frames (BayerRG12p), the merged HDR EXR, then its manifest record."""
+        from twin.camera.bayer import pack_bayer_rg12p
+        from twin.materials.exr import write_rgb_exr
+
+        i, c = photo.index, photo.camera_index
+        files = []
+        for j, raw in enumerate(raws):
+            self._write(_raw_file(i, c, j), pack_bayer_rg12p(raw))
+            files.append(_raw_file(i, c, j))
+        self._write_with(_photo_file(i, c), lambda tmp: write_rgb_exr(tmp, radiance))
+        files.append(_photo_file(i, c))
+        self.photos[photo_stem(i, c)] = {**record, "raw_shape": list(raws[0].shape), "files": files}
+        self.save()
+
+    def save(self) -> None:
+        doc = {**self.header, "photos": self.photos, "files": self.files}
+        write_bytes_atomic(self.dir / MANIFEST, json.dumps(doc, sort_keys=True, separators=(",", ":")).encode())
+
+
+def verify(directory) -> list[str]:
+    """Files of a capture folder whose checksum does not match its manifest (empty when all verify)."""
+    return CaptureSession.open(directory).verify()

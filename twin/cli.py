@@ -1,0 +1,241 @@
+"""The twin's sub-commands of `hemicube` (registered by the front, hemicube.cli): rig, show, capture,
+samples, patterns, and the twin's benchmarks (bench lumitexel, bench capture)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+RIG_HELP = "built-in rig (paper, mini) or rig folder (default: %(default)s)"
+
+
+def _rig_arg(value: str):
+    import twin
+
+    return twin.load_rig(value)
+
+
+def cmd_rig_info(args) -> int:
+    rig = _rig_arg(args.rig)
+    info = rig.summary()
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    print(f"rig {info['name']}: {info['num_leds']} LEDs ({info['num_upper_leds']} upper, "
+          f"{info['num_bottom_leds']} bottom), unit {info['length_unit']}")
+    for b in info["boards"]:
+        print(f"  board {b['name']:<8} face {b['face']:<6} grid {b['grid'][0]}x{b['grid'][1]}: {b['leds']} LEDs")
+    print(f"  bounding box min {info['bounding_box']['min']} max {info['bounding_box']['max']} mm")
+    for name, c in info["cameras"].items():
+        print(f"  camera {name}: centre {c['centre']} mm, {c['resolution'][0]}x{c['resolution'][1]} px, "
+              f"fx {c['fx']:.2f} fy {c['fy']:.2f} cx {c['cx']:.2f} cy {c['cy']:.2f}"
+              + (" (ASSUMED)" if c["assumed"] else ""))
+    print(f"  digest {info['digest']}")
+    return 0
+
+
+def cmd_rig_import(args) -> int:
+    from twin.rig.format import save_rig
+    from twin.rig.opensvbrdf_import import import_opensvbrdf
+
+    rig = import_opensvbrdf(args.dir)
+    out = save_rig(rig, args.output, overwrite=args.force)
+    print(f"imported {rig.num_leds} LEDs and {len(rig.cameras)} camera(s) from {args.dir} -> {out}")
+    return 0
+
+
+def cmd_rig_export(args) -> int:
+    from twin.rig.format import save_rig
+
+    rig = _rig_arg(args.rig)
+    out = save_rig(rig, args.output, overwrite=args.force)
+    print(f"wrote rig {rig.name!r} ({rig.num_leds} LEDs) to {out}")
+    return 0
+
+
+def load_led_values(path: str, rig, index: int = 0) -> np.ndarray:
+    """A per-LED vector from a .npy file ((L,) or (L, 3), never unpickled) or one frame of a pattern file."""
+    p = Path(path)
+    if p.suffix == ".npy":
+        try:
+            v = np.load(p, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise ValueError(f"{p}: not a readable .npy array ({e})") from None
+    else:
+        from twin.capture.patterns import load_patterns
+
+        ps = load_patterns(p)
+        ps.check_rig(rig)
+        if not 0 <= index < ps.num_patterns:
+            raise ValueError(f"{p}: frame {index} out of range 0..{ps.num_patterns - 1}")
+        v = ps.weights[index]
+    if v.shape[0] != rig.num_leds or v.ndim not in (1, 2):
+        raise ValueError(f"{p}: expected ({rig.num_leds},) or ({rig.num_leds}, 3) values, got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{p}: values contain NaN or Inf")
+    return v
+
+
+def cmd_show_rig(args) -> int:
+    from twin.view.rig_view import show_rig
+
+    rig = _rig_arg(args.rig)
+    values = load_led_values(args.values, rig, args.index) if args.values else None
+    out = show_rig(rig, values=values, output=args.output, window_size=tuple(args.size))
+    if out is not None:
+        print(f"wrote {out}")
+    return 0
+
+
+def cmd_show_pattern(args) -> int:
+    from twin.capture.patterns import load_patterns
+    from twin.view.cross_plot import save_pattern_image
+
+    ps = load_patterns(args.file)
+    rig = _rig_arg(args.rig or ps.rig)
+    ps.check_rig(rig)
+    out = save_pattern_image(ps, rig, args.output, index=args.index)
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_capture(args) -> int:
+    from twin.capture.runner import capture
+    from twin.capture.session import verify
+
+    learned = None
+    if args.patterns:
+        from twin.capture.patterns import load_patterns
+
+        learned = load_patterns(args.patterns)
+    rig = _rig_arg(args.rig)
+    if learned is not None:
+        learned.check_rig(rig)
+    out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
+                  resolution=args.resolution, learned=learned, progress=not args.no_progress)
+    bad = verify(out)
+    if bad:
+        print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)
+        return 1
+    print(f"capture complete: {out} (manifest verified)")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from twin.bench import bench_capture, bench_lumitexel
+
+    if args.bench_command == "lumitexel":
+        res = bench_lumitexel(args.rig, args.device, args.leds, args.points, args.patterns, args.repeats,
+                              not args.no_compile)
+    else:
+        res = bench_capture(args.rig, args.device, args.sample, args.resolution, args.hdr_photos)
+    print(json.dumps(res, indent=2))
+    return 0
+
+
+def _pattern_image_args(s) -> None:
+    """`show pattern` and `patterns show`: the same command under both names."""
+    s.add_argument("file", help="a pattern file (.npz, twin.capture.patterns format)")
+    s.add_argument("-o", "--output", required=True, help="PNG path to write")
+    s.add_argument("--rig", help="rig the frames are drawn on (default: the one the pattern file names)")
+    s.add_argument("--index", type=int, help="only this frame, 0-based (default: every frame)")
+    s.set_defaults(func=cmd_show_pattern)
+
+
+def register(sub) -> None:
+    """Add the twin's sub-commands to the front's parser."""
+    rig = sub.add_parser("rig", help="inspect, import and export rigs").add_subparsers(dest="rig_command",
+                                                                                       required=True)
+    s = rig.add_parser("info", help="LED counts per board, bounding box, cameras")
+    s.add_argument("rig", help="built-in rig name (paper, mini) or rig folder")
+    s.add_argument("--json", action="store_true", help="print JSON (digest, intrinsics, centres) instead of text")
+    s.set_defaults(func=cmd_rig_info)
+    s = rig.add_parser("import-opensvbrdf", help="import the released OpenSVBRDF configuration files")
+    s.add_argument("dir", help="folder with lights.bin, intrinsic.yml, extrinsic.yml, ...")
+    s.add_argument("-o", "--output", required=True, help="rig folder to write")
+    s.add_argument("--force", action="store_true", help="replace an existing output folder")
+    s.set_defaults(func=cmd_rig_import)
+    s = rig.add_parser("export", help="write a rig (e.g. a built-in one) as a rig folder")
+    s.add_argument("rig", help="built-in rig name (paper, mini) or rig folder")
+    s.add_argument("-o", "--output", required=True, help="rig folder to write")
+    s.add_argument("--force", action="store_true", help="replace an existing output folder")
+    s.set_defaults(func=cmd_rig_export)
+
+    show = sub.add_parser("show", help="pictures of the rig and of patterns").add_subparsers(dest="show_command",
+                                                                                             required=True)
+    s = show.add_parser("rig", help="3-D view of the rig (pyvista); PNG off-screen, a window otherwise")
+    s.add_argument("--rig", default="paper", help=RIG_HELP)
+    s.add_argument("--values", help="per-LED values to colour the LEDs: .npy (L,) or (L, 3), or a pattern file "
+                   "(default: LEDs coloured by board)")
+    s.add_argument("--index", type=int, default=0, help="frame of the pattern file given to --values, 0-based "
+                   "(default: %(default)s)")
+    s.add_argument("-o", "--output", help="PNG path; without it an interactive window opens")
+    s.add_argument("--size", type=int, nargs=2, default=(1200, 900), metavar=("W", "H"),
+                   help="image size in pixels (default: %(default)s)")
+    s.set_defaults(func=cmd_show_rig)
+    _pattern_image_args(show.add_parser("pattern", help="a pattern set as unfolded-cube (cross) images"))
+
+    s = sub.add_parser("capture", help="run the capture plan (193+ HDR photos) into a session folder")
+    s.add_argument("--backend", default="sim", help="device backend: sim (the simulator; real hardware "
+                   "backends later) (default: %(default)s)")
+    s.add_argument("--rig", default="mini", help=RIG_HELP)
+    s.add_argument("--sample", default="ramps", help="built-in sample (`hemicube samples list`) or a folder of "
+                   "OpenSVBRDF maps (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the sensor noise and of seeded samples "
+                   "(default: %(default)s)")
+    s.add_argument("--resolution", type=int, default=128, help="texels per side of a built-in sample's maps "
+                   "(default: %(default)s)")
+    s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
+    s.add_argument("--patterns", help="pattern file with the 64 learned frames (default: the rig's own, else a "
+                   "seeded placeholder)")
+    s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    s.set_defaults(func=cmd_capture)
+
+    s = sub.add_parser("samples", help="the built-in material samples").add_subparsers(dest="samples_command",
+                                                                                       required=True)
+    s = s.add_parser("list", help="built-in samples with their parameter ranges")
+    s.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    s.set_defaults(func=cmd_samples_list)
+
+    pats = sub.add_parser("patterns", help="pattern files").add_subparsers(dest="patterns_command", required=True)
+    _pattern_image_args(pats.add_parser("show", help="a pattern set as unfolded-cube (cross) images"))
+
+
+def register_bench(bench) -> None:
+    """Add the twin's benchmarks to the front's `bench` group."""
+    s = bench.add_parser("lumitexel", help="LED-BRDF evaluations per second vs a plain torch baseline")
+    s.add_argument("--rig", default="paper", help=RIG_HELP)
+    s.add_argument("--device", default="cpu", help="Warp/torch device: cpu, cuda (default: %(default)s)")
+    s.add_argument("--leds", type=int, help="use the first N LEDs of the rig (default: all)")
+    s.add_argument("--points", type=int, default=4096, help="surface points (default: %(default)s)")
+    s.add_argument("--patterns", type=int, default=64, help="patterns projected onto (default: %(default)s)")
+    s.add_argument("--repeats", type=int, default=5, help="timed repeats, the best is kept (default: %(default)s)")
+    s.add_argument("--no-compile", action="store_true", help="skip the torch.compile baseline")
+    s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("capture", help="seconds for the full capture plan's simulation, by stage")
+    s.add_argument("--rig", default="paper", help=RIG_HELP)
+    s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda (default: %(default)s)")
+    s.add_argument("--sample", default="ramps", help="built-in sample (default: %(default)s)")
+    s.add_argument("--resolution", type=int, default=1024, help="texels per side of the sample's maps "
+                   "(default: %(default)s)")
+    s.add_argument("--hdr-photos", type=int, default=4, help="photos whose HDR merge is timed "
+                   "(default: %(default)s)")
+    s.set_defaults(func=cmd_bench)
+
+
+def cmd_samples_list(args) -> int:
+    from twin.materials.samples import BUILTIN_SAMPLES, sample_ranges
+
+    rows = {name: sample_ranges(name) for name in BUILTIN_SAMPLES}
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    print(f"{'sample':<16} {'rho_d':>13} {'rho_s':>13} {'alpha':>13} {'ax/ay':>7} {'tilt':>6}  character")
+    for name, r in rows.items():
+        print(f"{name:<16} {r['rho_d'][0]:5.3f}-{r['rho_d'][1]:<6.3f} {r['rho_s'][0]:5.2f}-{r['rho_s'][1]:<6.2f} "
+              f"{r['alpha'][0]:5.3f}-{r['alpha'][1]:<6.3f} {r['anisotropy_max']:7.1f} {r['tilt_max_deg']:5.1f}°  "
+              f"{r['description']}")
+    return 0
