@@ -8,8 +8,11 @@ import sys
 
 
 def cmd_validate(args) -> int:
-    from hemicube.validate import run_validation
+    from hemicube.validate import run_suite, run_validation
 
+    if args.suite is not None:
+        return run_suite(args.suite, rig=args.rig, device=args.device, output=args.output,
+                         resolution=args.resolution, seed=args.seed, jobs=args.jobs, as_json=args.json)
     return run_validation(rig=args.rig, sample=args.sample, device=args.device, as_json=args.json,
                           output=args.output, resolution=args.resolution, seed=args.seed,
                           progress=not args.no_progress)
@@ -30,8 +33,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "OpenSVBRDF maps (default: %(default)s)")
     s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda, cuda:N (default: %(default)s)")
     s.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
-    s.add_argument("-o", "--output", default="hemicube-validate",
-                   help="folder for the capture, the reconstruction and the report (default: %(default)s)")
+    s.add_argument("--suite", nargs="*", metavar="NAME", help="validate every sample of the material suite, or "
+                   "the samples named, in parallel, and print one table (default: one sample, --sample)")
+    s.add_argument("--jobs", type=int, help="suite samples run at a time (default: the number of cores)")
+    s.add_argument("-o", "--output", help="folder for the capture, the reconstruction and the report (default: "
+                   "hemicube-validate/RIG_SAMPLE_seedSEED; with --suite, hemicube-validate/suite_RIG_seedSEED "
+                   "holding one folder per sample and report/)")
     s.add_argument("--resolution", type=int, help="texture grid texels per side (default: the pipeline's, 48)")
     s.add_argument("--seed", type=int, default=1, help="the virtual capture's seed (default: %(default)s)")
     s.add_argument("--no-progress", action="store_true", help="no progress output")

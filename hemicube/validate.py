@@ -5,61 +5,91 @@
 2. end to end: a virtual capture of the sample (`twin.capture.runner`, seed 1) -> the reconstruction pipeline
    (`reconstruction.pipeline`: alignment, extraction, decode with the shipped network, three-pass
    fine-tuning, GGX fitting) -> the score against the capture's ground truth
-   (`reconstruction.validation`), with the rig's thresholds (stated there and in docs/accuracy.md).
+   (`reconstruction.validation`), with the thresholds of `reconstruction.validation.thresholds_for` (stated
+   there and in docs/accuracy.md).
 Writes OUTPUT/capture, OUTPUT/reconstruction and OUTPUT/report (report.md, metrics.json, images/); prints a
-metrics table. Exit code non-zero when a check or a threshold fails.
+metrics table. Exit code non-zero when a check or a threshold fails. Without -o, OUTPUT is
+hemicube-validate/<rig>_<sample>_seed<seed>, so that runs on different samples never share a capture.
+
+`--suite [NAMES]` runs step 2 on every named sample (default: the material suite,
+twin.materials.samples.SUITE), as many at a time as there are cores, each in its own process and folder
+(OUTPUT/<sample>/), then prints one table (sample x metric, pass/fail) and writes OUTPUT/report/ with every
+sample's map panels side by side (truth | reconstruction | error). Progress goes to stderr.
 """
 from __future__ import annotations
 
 import json
+import os
+import sys
+import time
 from pathlib import Path
 
-def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int, seed: int,
+DEFAULT_ROOT = Path("hemicube-validate")
+
+
+def _sample_name(sample: str) -> str:
+    """A folder-safe name of a built-in sample or a map folder."""
+    name = Path(sample).name if os.sep in str(sample) or Path(sample).is_dir() else str(sample)
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "sample"
+
+
+def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int | None, seed: int,
                progress: bool) -> tuple[dict, list, dict]:
     """Simulate a capture, reconstruct it, score it: (metrics, threshold rows, report paths)."""
     from dataclasses import replace
 
-    from reconstruction.pipeline import ReconstructConfig, reconstruct
     from reconstruction.metrics import check
+    from reconstruction.pipeline import ReconstructConfig, reconstruct
     from reconstruction.report import write_report
     from reconstruction.validation import evaluate, thresholds_for
-
     from twin.capture.runner import capture
 
+    resolution = resolution or ReconstructConfig.resolution
     cap = capture(rig_obj, sample, output / "capture", seed=seed, device=device, progress=progress)
     config = replace(ReconstructConfig(), resolution=resolution, device=device)
     recon = reconstruct(cap, output / "reconstruction", config, progress=progress, rig=rig_obj)
     metrics, panels = evaluate(cap, recon, rig_obj, device=device)
-    rows = check(metrics, thresholds_for(rig_obj.name) if resolution == ReconstructConfig.resolution else [])
+    thresholds = thresholds_for(rig_obj.name, resolution, str(sample))
+    rows = check(metrics, thresholds)
     notes = [f"rig {rig_obj.name!r}, sample {sample!r}, seed {seed}, device {device}, texture grid "
              f"{resolution}^2 over {recon.grid.size_mm:.1f} mm, line {recon.holdout_line} held out of fine-tuning",
              "renders compare texel values on the texture grid (network units); 'truth_maps' renders the true maps "
              "the same way: the ceiling that the photo's noise and pixel footprint allow"]
-    if resolution != ReconstructConfig.resolution:
-        notes.append(f"thresholds are set for the default grid ({ReconstructConfig.resolution}^2); none applied")
+    if not thresholds:
+        notes.append(f"no thresholds are set for rig {rig_obj.name!r}: the numbers are reported, not checked")
     paths = write_report(output / "report", title=f"hemicube validate: {rig_obj.name} / {sample}",
                          metrics=metrics, checks=rows, panels=panels, notes=notes)
     return metrics, rows, paths
 
 
-def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, output="hemicube-validate",
+def _self_checks(rig_obj, device: str):
+    from twin.checks import forward_checks, reference_checks, reference_dir, rig_checks
+
+    ref = reference_dir()
+    checks = rig_checks(rig_obj)
+    if ref is not None:
+        checks += reference_checks(ref)
+    return checks + forward_checks(rig_obj, device, ref), ref
+
+
+def _print_checks(checks) -> None:
+    w = max(len(c.name) for c in checks)
+    for c in checks:
+        print(f"  [{'PASS' if c.passed else 'FAIL'}] {c.name:<{w}}  worst {c.worst:.3g} {c.unit} "
+              f"(threshold {c.threshold:g})  -- {c.compared}")
+
+
+def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, output=None,
                    resolution: int | None = None, seed: int = 1, progress: bool = True) -> int:
     """The main job: rig and forward-model checks, then capture -> reconstruct -> score (see the module
     docstring). Exit code 0 when every check and every threshold passes."""
     import twin
     from reconstruction.metrics import format_table
-    from reconstruction.pipeline import ReconstructConfig
-    from twin.checks import forward_checks, reference_checks, reference_dir, rig_checks
 
     rig_obj = twin.load_rig(rig)
-    ref = reference_dir()
-    checks = rig_checks(rig_obj)
-    if ref is not None:
-        checks += reference_checks(ref)
-    checks += forward_checks(rig_obj, device, ref)
-    out = Path(output)
-    metrics, rows, paths = end_to_end(rig_obj, sample, device, out, resolution or ReconstructConfig.resolution,
-                                      seed, progress and not as_json)
+    checks, ref = _self_checks(rig_obj, device)
+    out = Path(output) if output else DEFAULT_ROOT / f"{rig_obj.name}_{_sample_name(sample)}_seed{seed}"
+    metrics, rows, paths = end_to_end(rig_obj, sample, device, out, resolution, seed, progress and not as_json)
     ok = all(c.passed for c in checks) and all(r["passed"] for r in rows)
     report = {
         "rig": rig_obj.name, "sample": sample, "device": device, "passed": ok,
@@ -74,13 +104,131 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
     if ref is None:
         print("  (reference data not found: set HEMICUBE_REFERENCE to the OpenSVBRDF lightstage folder to add "
               "the checks against the released device)")
-    w = max(len(c.name) for c in checks)
-    for c in checks:
-        print(f"  [{'PASS' if c.passed else 'FAIL'}] {c.name:<{w}}  worst {c.worst:.3g} {c.unit} "
-              f"(threshold {c.threshold:g})  -- {c.compared}")
+    _print_checks(checks)
     print(format_table(rows))
     t = metrics["timings_s"]
     print("  seconds: " + ", ".join(f"{k[:-2]} {v:.1f}" for k, v in t.items()))
-    print(f"  report: {paths.get('report', out / 'report')}")
+    print(f"  report: {paths.get('report_md', out / 'report')}")
     print("result:", "all checks passed" if ok else "FAILED")
     return 0 if ok else 1
+
+
+# --- the suite ------------------------------------------------------------------------------------------
+def _one_thread() -> None:
+    """Suite workers share the cores: one torch thread each (oversubscribed threads cost up to 10x)."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _suite_member(rig: str, sample: str, device: str, output: str, resolution, seed: int) -> dict:
+    """One suite sample in its own process: capture -> reconstruct -> score into `output`."""
+    import twin
+
+    t0 = time.perf_counter()
+    try:
+        metrics, rows, paths = end_to_end(twin.load_rig(rig), sample, device, Path(output), resolution, seed, False)
+    except Exception as e:  # noqa: BLE001 - one sample's failure is reported in the table, not fatal to the rest
+        return {"sample": sample, "passed": False, "error": f"{type(e).__name__}: {e}", "rows": [],
+                "seconds": time.perf_counter() - t0}
+    return {"sample": sample, "passed": all(r["passed"] for r in rows), "rows": rows, "metrics": metrics,
+            "images": {k: str(v) for k, v in paths["images"].items()}, "seconds": time.perf_counter() - t0}
+
+
+def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
+              jobs: int | None = None, as_json=False) -> int:
+    """`hemicube validate --suite [NAMES]` (module docstring). Exit code 0 when every check and every
+    threshold of every sample passes."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    import twin
+    from twin.materials.samples import SUITE
+
+    names = list(names or SUITE)
+    rig_obj = twin.load_rig(rig)
+    checks, _ = _self_checks(rig_obj, device)
+    out = Path(output) if output else DEFAULT_ROOT / f"suite_{rig_obj.name}_seed{seed}"
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(names)))
+    if str(device).startswith("cuda"):
+        jobs = 1  # one GPU: the samples queue on it
+    print(f"[suite] {len(names)} samples on rig {rig_obj.name!r}, {jobs} at a time -> {out}", file=sys.stderr)
+    results = {}
+    t0 = time.perf_counter()
+    # spawn, not fork: each worker initialises its own Warp and torch
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_one_thread) as pool:
+        futures = {pool.submit(_suite_member, rig, s, device, str(out / _sample_name(s)), resolution, seed): s
+                   for s in names}
+        for f in as_completed(futures):
+            r = f.result()
+            results[r["sample"]] = r
+            state = "PASS" if r["passed"] else ("ERROR " + r["error"] if "error" in r else "FAIL")
+            print(f"[suite] {len(results)}/{len(names)} {r['sample']}: {state} ({r['seconds']:.0f} s, "
+                  f"{time.perf_counter() - t0:.0f} s elapsed)", file=sys.stderr, flush=True)
+    ordered = [results[s] for s in names]
+    report = write_suite_report(out / "report", rig_obj.name, ordered, checks)
+    ok = all(c.passed for c in checks) and all(r["passed"] for r in ordered)
+    if as_json:
+        print(json.dumps({"rig": rig_obj.name, "device": device, "passed": ok, "report": str(report),
+                          "checks": [{**c.__dict__, "passed": c.passed} for c in checks],
+                          "samples": [{k: v for k, v in r.items() if k != "images"} for r in ordered]},
+                         indent=2, default=lambda o: None))
+        return 0 if ok else 1
+    print(f"hemicube validate --suite: rig {rig_obj.name!r}, {len(names)} samples, device {device}")
+    _print_checks(checks)
+    print(suite_table(ordered))
+    print(f"  report: {report}")
+    print("result:", "all samples passed" if ok else "FAILED")
+    return 0 if ok else 1
+
+
+def suite_table(results: list[dict]) -> str:
+    """One row per sample, one column per thresholded metric: the value, with '!' where it misses."""
+    from reconstruction.metrics import _fmt_value
+
+    metrics = list(dict.fromkeys(r["metric"] for res in results for r in res["rows"]))
+    short = [m.replace("maps.", "").replace("_pct.median", "%").replace("_deg.median", "°")
+             .replace(".median_px", " px").replace("render.", "") for m in metrics]
+    head = ["sample"] + short + ["result"]
+    body = []
+    for res in results:
+        by = {r["metric"]: r for r in res["rows"]}
+        cells = [(_fmt_value(by[m]["value"]) + ("" if by[m]["passed"] else "!")) if m in by else "-" for m in metrics]
+        body.append([res["sample"]] + cells + ["PASS" if res["passed"] else res.get("error", "FAIL")[:40]])
+    widths = [max(len(str(row[i])) for row in [head] + body) for i in range(len(head))]
+    lines = ["  ".join(str(c).rjust(w) if i else str(c).ljust(w) for i, (c, w) in enumerate(zip(row, widths)))
+             for row in [head] + body]
+    return "\n".join([lines[0], "-" * len(lines[0])] + lines[1:] + ["('!' marks a value that misses its threshold)"])
+
+
+def write_suite_report(out_dir: Path, rig_name: str, results: list[dict], checks) -> Path:
+    """OUTPUT/report/: report.md (the table, then each sample's map panels side by side), metrics.json,
+    images/<sample>_<panel>.png. Written whole (twin.atomic.atomic_folder)."""
+    import shutil
+
+    from reconstruction.metrics import _fmt_value, to_jsonable
+    from twin.atomic import atomic_folder, write_bytes_atomic
+
+    ok = all(c.passed for c in checks) and all(r["passed"] for r in results)
+    md = [f"# hemicube validate --suite: {rig_name}", "",
+          f"**Result: {'PASS' if ok else 'FAIL'}** ({sum(r['passed'] for r in results)} of {len(results)} "
+          "samples meet every threshold).", "", "```text", suite_table(results), "```", ""]
+    for res in results:
+        md += [f"## {res['sample']}: {'PASS' if res['passed'] else 'FAIL'} ({res['seconds']:.0f} s)", ""]
+        if "error" in res:
+            md += [f"Error: `{res['error']}`", ""]
+        md += [f"- `{r['metric']}` = {_fmt_value(r['value'])} ({r['op']} {r['threshold']:g}: "
+               f"{'pass' if r['passed'] else '**FAIL**'}; {r.get('why', '')})" for r in res["rows"]]
+        md += [""] + [f"![{res['sample']} {name}](images/{res['sample']}_{name}.png)"
+                      for name in res.get("images", {}) if not name.startswith("heldout")] + [""]
+    doc = to_jsonable({"rig": rig_name, "passed": ok, "samples": [{k: v for k, v in r.items() if k != "images"}
+                                                                   for r in results]})
+    with atomic_folder(out_dir, overwrite=True) as tmp:
+        (tmp / "images").mkdir()
+        for res in results:
+            for name, path in res.get("images", {}).items():
+                if not name.startswith("heldout"):
+                    shutil.copyfile(path, tmp / "images" / f"{res['sample']}_{name}.png")
+        write_bytes_atomic(tmp / "metrics.json", (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
+        write_bytes_atomic(tmp / "report.md", "\n".join(md).encode())
+    return out_dir / "report.md"

@@ -390,6 +390,7 @@ def read_maps(directory: str | os.PathLike, size_mm: float | None = None) -> SVB
 # --- built-in samples ------------------------------------------------------------------------------
 
 BUILTIN_SAMPLES = ("ramps", "brushed_metal", "satin_weave")
+SUITE = BUILTIN_SAMPLES  # `hemicube validate --suite`: the samples every threshold must hold on
 MIN_RESOLUTION = 16
 MAX_RESOLUTION = 8192
 
