@@ -123,6 +123,19 @@ def cmd_capture(args) -> int:
     return 0
 
 
+def cmd_controller_info(args) -> int:
+    from twin.capture.backends.led_host import LedController
+
+    with LedController(args.led, baudrate=args.baud) as ctl:
+        state = ctl.query()
+        print(json.dumps({"url": args.led, "firmware": ctl.info.firmware, "protocol": ctl.info.version,
+                          "leds": ctl.info.num_leds, "slots": ctl.info.slots, "max_payload": ctl.info.max_payload,
+                          "boot_id": f"{state.boot_id:08x}", "displayed_slot": state.displayed_slot,
+                          "displayed_crc": f"{state.displayed_crc:08x}", "rejected_frames": state.rejected,
+                          "stored_patterns": len(ctl.stored())}, indent=2))
+    return 0
+
+
 def cmd_bench(args) -> int:
     from twin.bench import bench_capture, bench_lumitexel
 
@@ -193,6 +206,21 @@ def register(sub) -> None:
     s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     s.set_defaults(func=cmd_capture)
+
+    ctl = sub.add_parser("controller", help="the LED controller: its firmware emulator, and a status query"
+                         ).add_subparsers(dest="controller_command", required=True)
+    from twin.capture.backends import led_emulator
+
+    s = ctl.add_parser("serve", help="run the controller's firmware emulator (docs/led-protocol.md) until "
+                       "SIGTERM/Ctrl-C; prints `serving URL` first")
+    led_emulator.add_arguments(s)
+    s.set_defaults(func=led_emulator.run)
+    s = ctl.add_parser("info", help="what a controller reports: LEDs, slots, boot id, displayed pattern (JSON)")
+    s.add_argument("--led", required=True, help="the controller's pyserial URL: /dev/ttyACM0, socket://HOST:PORT, "
+                   "a pty path")
+    s.add_argument("--baud", type=int, default=2_000_000, help="baud rate of a UART link (ignored by USB CDC and "
+                   "sockets) (default: %(default)s)")
+    s.set_defaults(func=cmd_controller_info)
 
     s = sub.add_parser("samples", help="the built-in material samples").add_subparsers(dest="samples_command",
                                                                                        required=True)

@@ -36,6 +36,10 @@ class CaptureError(ValueError):
     pass
 
 
+class DeviceError(CaptureError):
+    """A device (the LED controller, a camera) that still failed after its retries, or cannot be used."""
+
+
 @dataclass(frozen=True)
 class Photo:
     index: int

@@ -1,0 +1,475 @@
+"""`hemicube controller serve`: the LED controller's firmware, emulated in its own process, speaking the
+protocol of docs/led-protocol.md from the device side on a TCP port or a pty, with faults injected on
+request.
+
+`Firmware` is the device logic alone (slots, the display, answering a retransmission without executing it
+twice); it is the reference a firmware writer can read beside the specification. `Faults` damages frames
+in either direction as `--faults` asks (grammar in `FaultSpec.parse` and the doc). `serve` runs the link:
+one host at a time, the controller's state kept across host connections (a real controller stays powered
+when the host's port closes), until SIGTERM/SIGINT.
+
+With `--log FILE` every injected fault, every pattern latched onto the LEDs and every reset is written as a
+JSON line, and at exit a summary with the counters and the CRCs of every frame the device sent undamaged,
+so that a benchmark can check, from the device's side, what was displayed and what got through.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import random
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+from twin.capture.backends.led_protocol import (LIST_ENTRY, MAX_CHUNK, MAX_PAYLOAD, NAK, NO_SLOT, READ_ARGS, REPLY,
+                                                SLOT_CRC, STATE, VERSION, WRITE_HEAD, Cmd, DeviceInfo, Frame,
+                                                FrameError, FrameReader, SlotFlag, State, Status, cobs_decode,
+                                                crc32, encode_frame)
+from twin.capture.plan import CaptureError
+
+FIRMWARE_NAME = "hemicube-twin emulator"
+MAX_SLOTS = (MAX_PAYLOAD - STATE.size) // LIST_ENTRY.size  # what one LIST reply can describe (817)
+
+
+class Firmware:
+    """The controller's state machine. `handle(item)` takes a decoded Frame (or the FrameError of one that
+    failed its checks) and returns the reply's wire bytes, or None when there is nothing to answer."""
+
+    def __init__(self, num_leds: int, slots: int, seed: int = 0, on_display=None):
+        if not 0 < num_leds <= 0xFFFF:
+            raise CaptureError(f"LED count {num_leds} out of range 1..65535 (HELLO carries it as u16)")
+        if not 1 <= slots <= MAX_SLOTS:
+            raise CaptureError(f"slots must be 1..{MAX_SLOTS} (one LIST reply describes them all), got {slots}")
+        self.num_leds, self.size, self.num_slots = num_leds, 3 * num_leds, slots
+        self._rng = random.Random(seed)  # boot ids: different after every reset, the same for a given seed
+        self._on_display = on_display or (lambda state, data: None)
+        self.boot()
+
+    def boot(self) -> None:
+        """Power-on state: every slot empty (zeros), the LEDs off, the counters and the reply cache cleared."""
+        self.boot_id = self._rng.getrandbits(32)
+        self.slots: list[bytearray | None] = [None] * self.num_slots  # None: all zeros, allocated on write
+        self.flags = [SlotFlag.EMPTY] * self.num_slots
+        self.crcs = [0] * self.num_slots
+        self.display = bytes(self.size)
+        self.displayed_slot, self.displayed_crc = NO_SLOT, crc32(self.display)
+        self.rejected = 0
+        self._last: tuple[int, int, bytes] | None = None  # (seq, frame CRC, reply) of the last command
+
+    def state(self, status: int) -> bytes:
+        return State(status, self.boot_id, self.displayed_slot, self.displayed_crc, self.rejected).pack()
+
+    def handle(self, item) -> bytes | None:
+        if isinstance(item, FrameError):
+            self.rejected += 1
+            if item.seq is None:
+                return None  # not even a header to answer to
+            return encode_frame(NAK, item.seq, self.state(Status.FRAME if item.version_ok else Status.VERSION))
+        if self._last is not None and self._last[:2] == (item.seq, item.crc):
+            return self._last[2]  # the host's retransmission of the last command: answer, do not redo
+        status, extra = self._execute(item)
+        known = item.type in Cmd._value2member_map_
+        reply = encode_frame(item.type | REPLY if known else NAK, item.seq, self.state(status) + extra)
+        self._last = (item.seq, item.crc, reply)
+        return reply
+
+    def _slot(self, slot: int) -> bool:
+        return 0 <= slot < self.num_slots
+
+    def _execute(self, f: Frame) -> tuple[int, bytes]:
+        p = f.payload
+        if f.type in (Cmd.HELLO, Cmd.STATE, Cmd.LIST, Cmd.RESET) and p:
+            return Status.LENGTH, b""
+        if f.type == Cmd.HELLO:
+            return Status.OK, DeviceInfo(VERSION, 3, self.num_leds, self.num_slots, MAX_PAYLOAD,
+                                         FIRMWARE_NAME).pack()
+        if f.type == Cmd.STATE:
+            return Status.OK, b""
+        if f.type == Cmd.RESET:
+            self.boot()
+            return Status.OK, b""
+        if f.type == Cmd.LIST:
+            return Status.OK, b"".join(LIST_ENTRY.pack(fl, c) for fl, c in zip(self.flags, self.crcs))
+        if f.type == Cmd.WRITE:
+            if len(p) < WRITE_HEAD.size or len(p) > WRITE_HEAD.size + MAX_CHUNK:
+                return Status.LENGTH, b""
+            slot, off = WRITE_HEAD.unpack_from(p)
+            data = p[WRITE_HEAD.size:]
+            if not self._slot(slot):
+                return Status.SLOT, b""
+            if off + len(data) > self.size:
+                return Status.RANGE, b""
+            if self.slots[slot] is None:
+                self.slots[slot] = bytearray(self.size)
+            self.slots[slot][off:off + len(data)] = data
+            self.flags[slot] = SlotFlag.DIRTY
+            return Status.OK, b""
+        if f.type in (Cmd.COMMIT, Cmd.SHOW):
+            if len(p) != SLOT_CRC.size:
+                return Status.LENGTH, b""
+            slot, crc = SLOT_CRC.unpack(p)
+            if not self._slot(slot):
+                return Status.SLOT, b""
+            if f.type == Cmd.COMMIT:
+                actual = crc32(self.slots[slot] if self.slots[slot] is not None else bytes(self.size))
+                if actual != crc:
+                    return Status.MISMATCH, actual.to_bytes(4, "little")
+                self.flags[slot], self.crcs[slot] = SlotFlag.VALID, actual
+                return Status.OK, actual.to_bytes(4, "little")
+            if self.flags[slot] != SlotFlag.VALID:
+                return Status.SLOT, b""
+            if self.crcs[slot] != crc:
+                return Status.MISMATCH, b""
+            # latch: the display buffer is separate from the slots, so later WRITEs never touch lit LEDs;
+            # its CRC is computed from the display buffer itself, i.e. from what is lit
+            self.display = bytes(self.slots[slot] if self.slots[slot] is not None else bytes(self.size))
+            self.displayed_slot, self.displayed_crc = slot, crc32(self.display)
+            self._on_display(self, self.display)
+            return Status.OK, b""
+        if f.type == Cmd.READ:
+            if len(p) != READ_ARGS.size:
+                return Status.LENGTH, b""
+            slot, off, n = READ_ARGS.unpack(p)
+            if slot != NO_SLOT and not self._slot(slot):
+                return Status.SLOT, b""
+            if n > MAX_CHUNK or off + n > self.size:
+                return Status.RANGE, b""
+            src = self.display if slot == NO_SLOT else (self.slots[slot] or bytes(self.size))
+            return Status.OK, bytes(src[off:off + n])
+        return Status.UNKNOWN, b""
+
+
+FAULT_KINDS = {  # kind -> the directions it applies to ("in": host to device, "out": device to host)
+    "drop": ("in", "out"),      # one byte of the frame removed
+    "corrupt": ("in", "out"),   # one byte of the frame XORed with a random non-zero value
+    "dup": ("in", "out"),       # the frame twice in a row
+    "delay": ("in", "out"),     # the frame held back for delay_s
+    "reset": ("in",),           # the device resets part-way through receiving the frame
+    "stuck": ("out",),          # the device repeats its previous reply instead of this one
+}
+
+
+@dataclass
+class FaultSpec:
+    rates: dict = field(default_factory=dict)  # kind -> probability per frame
+    flip: float = 0.0                          # probability per byte of a random bit error, both ways
+    delay_s: float = 0.5
+    seed: int = 0
+
+    GRAMMAR = ("comma-separated KIND=P (KIND: " + ", ".join(FAULT_KINDS) + "; P: probability per frame), "
+               "flip=Q (random bit errors, probability per byte), delay_s=SECONDS, seed=N")
+
+    @classmethod
+    def parse(cls, text: str | None) -> "FaultSpec":
+        spec = cls()
+        for item in filter(None, (s.strip() for s in (text or "").split(","))):
+            key, eq, value = item.partition("=")
+            try:
+                if not eq:
+                    raise ValueError
+                if key == "seed":
+                    spec.seed = int(value)
+                    continue
+                v = float(value)
+            except ValueError:
+                raise CaptureError(f"--faults: {item!r} is not KEY=NUMBER; expected {cls.GRAMMAR}") from None
+            if key in FAULT_KINDS or key == "flip":
+                if not 0.0 <= v <= 1.0:
+                    raise CaptureError(f"--faults: {key} must be a probability in [0, 1], got {v}")
+                if key == "flip":
+                    spec.flip = v
+                else:
+                    spec.rates[key] = v
+            elif key == "delay_s" and v >= 0:
+                spec.delay_s = v
+            else:
+                raise CaptureError(f"--faults: unknown or invalid {item!r}; expected {cls.GRAMMAR}")
+        for d in ("in", "out"):
+            total = sum(p for k, p in spec.rates.items() if d in FAULT_KINDS[k])
+            if total > 1.0:
+                raise CaptureError(f"--faults: the per-frame probabilities of one direction sum to {total} > 1")
+        return spec
+
+    def __str__(self):
+        parts = [f"{k}={v:g}" for k, v in self.rates.items()] + ([f"flip={self.flip:g}"] if self.flip else [])
+        return ",".join(parts + [f"delay_s={self.delay_s:g}", f"seed={self.seed}"]) if parts else "none"
+
+
+class Faults:
+    """Seeded fault decisions: at most one frame fault per frame, then independent per-byte bit errors."""
+
+    def __init__(self, spec: FaultSpec):
+        self.spec = spec
+        self._rng = random.Random(spec.seed)
+        self._until_flip = {"in": self._gap(), "out": self._gap()}
+        self.counts: dict[str, int] = {}
+
+    def _gap(self) -> float:
+        """Bytes before the next bit error (geometric), so that clean bytes cost nothing to decide."""
+        q = self.spec.flip
+        if q <= 0:
+            return math.inf
+        if q >= 1:
+            return 0
+        return int(math.log(1.0 - self._rng.random()) / math.log1p(-q))
+
+    def pick(self, direction: str) -> str | None:
+        u = self._rng.random()
+        for kind, p in self.spec.rates.items():
+            if direction in FAULT_KINDS[kind]:
+                if u < p:
+                    self.counts[f"{kind}_{direction}"] = self.counts.get(f"{kind}_{direction}", 0) + 1
+                    return kind
+                u -= p
+        return None
+
+    def damage(self, wire: bytes, kind: str) -> bytes:
+        """drop/corrupt one byte of a frame's encoded bytes (never its delimiter: bit errors cover that)."""
+        i = self._rng.randrange(len(wire) - 1)
+        if kind == "drop":
+            return wire[:i] + wire[i + 1:]
+        return wire[:i] + bytes([wire[i] ^ self._rng.randrange(1, 256)]) + wire[i + 1:]
+
+    def flips(self, data: bytes, direction: str) -> tuple[bytes, int]:
+        """`data` with this direction's bit errors applied, and how many."""
+        n = 0
+        buf = None
+        pos = self._until_flip[direction]
+        while pos < len(data):
+            buf = buf or bytearray(data)
+            buf[int(pos)] ^= 1 << self._rng.randrange(8)
+            n += 1
+            pos += 1 + self._gap()
+        self._until_flip[direction] = pos - len(data)
+        if n:
+            self.counts[f"flip_{direction}"] = self.counts.get(f"flip_{direction}", 0) + n
+        return (bytes(buf) if buf is not None else data), n
+
+
+class Device:
+    """The firmware behind a fault injector: bytes in from the link, bytes out to it."""
+
+    def __init__(self, firmware: Firmware, faults: Faults, log):
+        self.fw, self.faults, self.log = firmware, faults, log
+        self._split = bytearray()  # incoming bytes not yet ending in a delimiter
+        self._reader = FrameReader()
+        self._clean = deque(maxlen=4)  # recent undamaged incoming frames, to judge what damage got through
+        self._last_out: bytes | None = None
+        self.sent_crcs: list[int] = []
+        self.damaged_in = self.rejected_in = self.damaged_in_accepted = 0
+
+    def receive(self, data: bytes, send) -> None:
+        self._split += data
+        while (end := self._split.find(0)) >= 0:
+            wire = bytes(self._split[:end + 1])
+            del self._split[:end + 1]
+            self._frame_in(wire, send)
+
+    def _frame_in(self, wire: bytes, send) -> None:
+        self._clean.extend(f for f in FrameReader().feed(wire) if isinstance(f, Frame))
+        kind = self.faults.pick("in") if len(wire) > 1 else None
+        if kind:
+            self.log.write({"event": "fault", "kind": kind, "dir": "in"})
+        if kind == "delay":
+            time.sleep(self.faults.spec.delay_s)
+        if kind == "reset":  # part of the frame arrives, then the controller restarts and loses the rest
+            self.fw.boot()
+            self._reader = FrameReader()
+            self.log.write({"event": "reset", "boot_id": self.fw.boot_id})
+            return
+        if kind in ("drop", "corrupt"):
+            wire = self.faults.damage(wire, kind)
+        wire, flipped = self.faults.flips(wire, "in")
+        self.damaged_in += kind in ("drop", "corrupt") or flipped > 0
+        for _ in range(2 if kind == "dup" else 1):
+            for item in self._reader.feed(wire):
+                self._judge(item)
+                reply = self.fw.handle(item)
+                if reply is not None:
+                    self._send(reply, send)
+
+    def _judge(self, item) -> None:
+        """Damaged incoming frames must fail their checks: count those that did, and any frame that decoded
+        but is not one the host sent (a CRC-32 miss)."""
+        if isinstance(item, FrameError):
+            self.rejected_in += 1
+        elif item not in self._clean:
+            self.damaged_in_accepted += 1
+            self.log.write({"event": "damaged_frame_accepted", "seq": item.seq})
+
+    def _send(self, reply: bytes, send) -> None:
+        kind = self.faults.pick("out")
+        previous, self._last_out = self._last_out, reply
+        self.sent_crcs.append(int.from_bytes(cobs_decode(reply[:-1])[-4:], "little"))
+        if kind:
+            self.log.write({"event": "fault", "kind": kind, "dir": "out"})
+        if kind == "stuck":
+            if previous is None:
+                return
+            reply = previous
+        elif kind == "delay":
+            time.sleep(self.faults.spec.delay_s)
+        elif kind in ("drop", "corrupt"):
+            reply = self.faults.damage(reply, kind)
+        reply, _ = self.faults.flips(reply, "out")
+        send(reply * (2 if kind == "dup" else 1))
+
+
+class EventLog:
+    def __init__(self, path):
+        self._f = open(path, "a", buffering=1) if path else None
+
+    def write(self, event: dict) -> None:
+        if self._f is not None:
+            self._f.write(json.dumps(event, separators=(",", ":")) + "\n")
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+
+
+def _open_link(link: str):
+    """-> (url to print, listening socket or None, pty master fd or None, slave fd or None)."""
+    if link == "pty":
+        import tty
+
+        master, slave = os.openpty()
+        tty.setraw(master)
+        tty.setraw(slave)  # kept open so that the pty survives the host closing it between connections
+        return os.ttyname(slave), None, master, slave
+    if not link.startswith("socket://"):
+        raise CaptureError(f"--link must be socket://HOST:PORT or pty, got {link!r}")
+    host, _, port = link[len("socket://"):].rpartition(":")
+    try:
+        port_n = int(port)
+    except ValueError:
+        raise CaptureError(f"--link {link!r}: the port must be a number (0: any free port)") from None
+    srv = socket.create_server((host or "127.0.0.1", port_n))
+    h, p = srv.getsockname()[:2]
+    return f"socket://{h}:{p}", srv, None, None
+
+
+def serve(link: str, num_leds: int, *, slots: int = 256, faults: str | None = None, seed: int = 0,
+          log_path=None, out=sys.stdout) -> None:
+    """Serve until SIGTERM/SIGINT. Prints `serving URL (...)` on one line first."""
+    spec = FaultSpec.parse(faults)
+    log = EventLog(log_path)
+
+    def displayed(fw, data):
+        log.write({"event": "display", "slot": fw.displayed_slot, "crc": f"{fw.displayed_crc:08x}",
+                   "sha256": hashlib.sha256(data).hexdigest()[:16]})
+
+    device = Device(Firmware(num_leds, slots, seed=seed, on_display=displayed), Faults(spec), log)
+    url, srv, master, slave = _open_link(link)
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    print(f"serving {url} ({num_leds} LEDs, {slots} slots; faults: {spec})", file=out, flush=True)
+    log.write({"event": "listen", "url": url})
+    try:
+        if master is not None:
+            _pump(device, master, lambda b: os.write(master, b), lambda: os.read(master, 65536))
+        else:
+            while True:
+                conn, _ = srv.accept()
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                log.write({"event": "connect"})
+                with conn:
+                    _pump(device, conn, conn.sendall, lambda: conn.recv(65536))
+                log.write({"event": "disconnect"})
+    except KeyboardInterrupt:
+        pass
+    finally:
+        log.write({"event": "summary", "faults": device.faults.counts, "rejected_in": device.rejected_in,
+                   "damaged_in": device.damaged_in, "damaged_in_accepted": device.damaged_in_accepted,
+                   "sent": len(device.sent_crcs), "sent_crcs": b"".join(
+                       c.to_bytes(4, "little") for c in device.sent_crcs).hex()})
+        log.close()
+        for fd in (master, slave):
+            if fd is not None:
+                os.close(fd)
+        if srv is not None:
+            srv.close()
+
+
+def _pump(device: Device, fileobj, send, recv) -> None:
+    """Feed the device from one link until the host goes away (a socket's EOF; a pty never ends)."""
+    while True:
+        select.select([fileobj], [], [])
+        try:
+            data = recv()
+        except (ConnectionResetError, OSError):
+            return
+        if not data:
+            return
+        try:
+            device.receive(data, send)
+        except (BrokenPipeError, ConnectionResetError):
+            return
+
+
+def add_arguments(p) -> None:
+    """`hemicube controller serve`'s options (also `python -m twin.capture.backends.led_emulator`)."""
+    p.add_argument("--link", required=True, help="socket://127.0.0.1:PORT (TCP; port 0 picks a free one) or pty "
+                   "(a pseudo-terminal whose path is printed)")
+    p.add_argument("--rig", default="mini", help="built-in rig or rig folder whose LED count the controller drives "
+                   "(default: %(default)s)")
+    p.add_argument("--leds", type=int, help="LED count, instead of --rig's")
+    p.add_argument("--slots", type=int, default=256, help="pattern slots in the controller's memory "
+                   "(default: %(default)s)")
+    p.add_argument("--faults", help="faults to inject, e.g. corrupt=0.01,delay=0.01,flip=1e-5,seed=3 (kinds: "
+                   + ", ".join(FAULT_KINDS) + "; docs/led-protocol.md)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the controller's boot ids (default: %(default)s)")
+    p.add_argument("--log", help="append JSON lines here: faults injected, patterns displayed, resets, a summary "
+                   "at exit")
+
+
+def run(args) -> int:
+    if args.leds is None:
+        import twin
+
+        args.leds = twin.load_rig(args.rig).num_leds
+    serve(args.link, args.leds, slots=args.slots, faults=args.faults, seed=args.seed, log_path=args.log)
+    return 0
+
+
+def spawn(num_leds: int, *, link: str = "socket://127.0.0.1:0", faults: str | None = None, slots: int = 256,
+          seed: int = 0, log=None, timeout_s: float = 60.0) -> tuple[subprocess.Popen, str]:
+    """Start the emulator as its own process; returns it and the URL it serves (terminate it when done)."""
+    cmd = [sys.executable, "-m", "twin.capture.backends.led_emulator", "--link", link, "--leds", str(num_leds),
+           "--slots", str(slots), "--seed", str(seed)]
+    cmd += ["--faults", faults] if faults else []
+    cmd += ["--log", str(log)] if log else []
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
+    line = proc.stdout.readline() if ready else ""
+    if not line.startswith("serving "):
+        proc.kill()
+        raise CaptureError(f"the LED controller emulator did not start: {line.strip() or proc.stderr.read().strip()}")
+    return proc, line.split()[1]
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m twin.capture.backends.led_emulator", description=__doc__.split("\n")[0])
+    add_arguments(p)
+    args = p.parse_args(argv)
+    try:
+        return run(args)
+    except ValueError as e:
+        print(f"led_emulator: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
