@@ -27,8 +27,8 @@ def mini_uniform():
     exposed and merged as twin.capture.runner does (only these two photos, to stay fast), with the sidecars."""
     from twin.capture import pattern_sets
     from twin.capture.backends.sim import SimBackend
-    from twin.capture.plan import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S
-    from twin.camera.hdr import choose_bracket, merge_hdr
+    from twin.capture.plan import bracket_exposures
+    from twin.camera.hdr import merge_hdr
     from twin.materials.samples import load_sample
 
     rig = twin.load_rig("mini")
@@ -39,8 +39,7 @@ def mini_uniform():
         sim.prepare(cam, uniform)
         sim.show(uniform.levels[0])
         sensor = rig.camera(cam).sensor
-        exposures = [float(t) for t in np.clip(choose_bracket(sim.meter(cam), sensor, n=BRACKET, ratio=BRACKET_RATIO),
-                                               *EXPOSURE_LIMITS_S)]
+        exposures = bracket_exposures(sim.meter(cam), sensor)
         raws = [sim.grab(cam, t, j) for j, t in enumerate(exposures)]
         photos[cam] = merge_hdr(raws, exposures, sensor).radiance
         truth[cam] = sim.surfaces(cam).pixel_texel().astype(np.float32)

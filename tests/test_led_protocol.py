@@ -11,7 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from twin.capture.backends.led_emulator import FaultSpec, Firmware, spawn
+from twin.capture.backends.faults import FaultSpec
+from twin.capture.backends.led_emulator import Firmware, spawn
 from twin.capture.backends.led_host import LedController
 from twin.capture.backends.led_protocol import (MAX_PAYLOAD, MAX_WIRE, NAK, NO_SLOT, REPLY, SLOT_CRC,
                                                 WRITE_HEAD, Cmd, Frame, FrameError, FrameReader, State, Status,
@@ -107,7 +108,7 @@ def test_firmware_logic():
 
 
 @pytest.mark.parametrize("text,message", [
-    ("corrupt=2", "probability"), ("bogus=0.1", "unknown"), ("corrupt", "KEY=NUMBER"),
+    ("corrupt=2", "probability"), ("bogus=0.1", "unknown"), ("corrupt", "KEY=NUMBER"), ("delay_s=-1", ">= 0"),
     ("corrupt=0.6,drop=0.6", "sum to"), ("seed=x", "KEY=NUMBER")])
 def test_fault_spec_errors(text, message):
     with pytest.raises(CaptureError, match=message):

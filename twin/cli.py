@@ -113,8 +113,12 @@ def cmd_capture(args) -> int:
     rig = _rig_arg(args.rig)
     if learned is not None:
         learned.check_rig(rig)
+    devices = {"led": args.led, "led_baud": args.led_baud, "cameras": args.cameras,
+               "camera_serials": args.camera_serials.split(",") if args.camera_serials else None,
+               "camera_faults": args.camera_faults, "prompt": input if args.cameras == "basler" else None}
     out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
-                  resolution=args.resolution, learned=learned, progress=not args.no_progress)
+                  resolution=args.resolution, learned=learned, progress=not args.no_progress,
+                  devices=devices if args.backend != "sim" else None)
     bad = verify(out)
     if bad:
         print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)
@@ -191,8 +195,18 @@ def register(sub) -> None:
     _pattern_image_args(show.add_parser("pattern", help="a pattern set as unfolded-cube (cross) images"))
 
     s = sub.add_parser("capture", help="run the capture plan (193+ HDR photos) into a session folder")
-    s.add_argument("--backend", default="sim", help="device backend: sim (the simulator; real hardware "
-                   "backends later) (default: %(default)s)")
+    s.add_argument("--backend", default="sim", help="device backend: sim (the simulator) or hardware (the LED "
+                   "controller and pypylon cameras) (default: %(default)s)")
+    s.add_argument("--led", help="hardware: the LED controller's pyserial URL (/dev/ttyACM0, socket://HOST:PORT "
+                   "of `hemicube controller serve`, a pty path)")
+    s.add_argument("--led-baud", type=int, help="hardware: baud rate of a UART link (USB CDC and sockets ignore "
+                   "it; default 2000000)")
+    s.add_argument("--cameras", choices=("emulated", "basler"), help="hardware: pylon's camera emulation fed by "
+                   "the twin, or the rig's a2A5328-15ucPRO cameras")
+    s.add_argument("--camera-serials", help="hardware, basler: serial numbers in the rig's camera order, "
+                   "comma-separated (default: the cameras whose DeviceUserID is the rig camera's name)")
+    s.add_argument("--camera-faults", help="hardware, emulated: faults injected before triggers, e.g. "
+                   "failed=0.02,disconnect=0.005,stray=0.01,seed=1 (docs/reliability.md)")
     s.add_argument("--rig", default="mini", help=RIG_HELP)
     s.add_argument("--sample", default="ramps", help="built-in sample (`hemicube samples list`) or a folder of "
                    "OpenSVBRDF maps (default: %(default)s)")

@@ -23,6 +23,10 @@ from twin.capture.patterns import load_patterns
 BRACKET = 3  # raw frames per photo
 BRACKET_RATIO = 8.0
 EXPOSURE_LIMITS_S = (20e-6, 1.0)  # the camera's exposure range used by the plan (a2A5328-15ucPRO: 20 us up)
+# Exposures are planned in whole microseconds, the unit cameras take them in (ExposureTime), so that a camera
+# (pylon's emulator included) applies exactly what was planned; the HDR merge uses what the camera reports.
+# (n / 1e6 is the double nearest to n microseconds, the same number whichever code converts it)
+EXPOSURE_STEPS_PER_S = 1_000_000
 
 LEARNED = range(0, 64)       # photo indices of the plan (reference §6.3)
 LINES = range(64, 128)
@@ -86,6 +90,16 @@ def paper_plan(rig, patterns) -> list[Photo]:
     if "bottom" in names:
         plan.append(Photo(EMPTY_BOTTOM, cams[0], 0, "bottom", "empty"))
     return plan
+
+
+def bracket_exposures(max_radiance: float, sensor) -> list[float]:
+    """The exposure bracket of a photo whose brightest radiance is `max_radiance`: BRACKET exposures
+    BRACKET_RATIO apart (twin.camera.hdr.choose_bracket) within EXPOSURE_LIMITS_S, in whole microseconds."""
+    from twin.camera.hdr import choose_bracket
+
+    ts = choose_bracket(max(max_radiance, 1e-12), sensor, n=BRACKET, ratio=BRACKET_RATIO)
+    return [round(min(max(t, EXPOSURE_LIMITS_S[0]), EXPOSURE_LIMITS_S[1]) * EXPOSURE_STEPS_PER_S)
+            / EXPOSURE_STEPS_PER_S for t in ts]
 
 
 def frame_id(photo: Photo, j: int) -> int:

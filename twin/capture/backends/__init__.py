@@ -1,15 +1,36 @@
 """Device backends: the capture loop drives LEDs and cameras through this interface, so the same code runs
-the simulator and, later, the real hardware (a serial LED controller and Basler cameras).
+the simulator and the real hardware (a serial LED controller and Basler cameras).
 
-    backend = BACKENDS[name](rig, maps, seed=..., device=...)
-    backend.surfaces(camera)                     what each pixel sees (ground truth; the simulator only)
-    backend.prepare(camera, patterns)            get ready to show these patterns (a PatternSet)
-    backend.show(levels)                         drive the LEDs: (L, 3) uint8 levels
-    backend.meter(camera) -> float               the brightest radiance expected (for the exposure bracket)
-    backend.grab(camera, exposure_s, frame) -> (H, W) uint16 raw Bayer frame (BayerRG12 values)
+    with open_backends(name, rig, maps, seed=..., device=..., **options) as backends:
+        backend = backends["sample"]             (backends["empty"]: the empty board's photos)
+        backend.surfaces(camera)                 what each pixel sees (ground truth), or None when unknown
+        backend.prepare(camera, patterns)        get ready to show these patterns (a PatternSet)
+        backend.show(levels) -> dict             drive the LEDs: (L, 3) uint8 levels; returns what the devices
+                                                 acknowledged, for the manifest
+        backend.meter(camera) -> float           the brightest radiance expected (for the exposure bracket)
+        backend.grab_bracket(camera, exposures_s, frames) -> (raws, applied exposures_s, dict for the manifest)
+                                                 (H, W) uint16 raw Bayer frames (BayerRG12 values), one per
+                                                 exposure; `frames` are the plan's frame ids (the twin's noise)
 
-Add a backend as a module here and register it in BACKENDS.
+`sim` is the simulator (sim.py); `hardware` the LED controller and pypylon cameras (hardware.py, with
+led_host/led_protocol, pylon_cameras, and the devices' emulators led_emulator and faults). Add a backend as a
+module here and register how to open it in BACKENDS.
 """
+from contextlib import contextmanager
+
+from twin.capture.backends.hardware import open_hardware
 from twin.capture.backends.sim import SimBackend
 
-BACKENDS = {"sim": SimBackend}
+
+@contextmanager
+def _open_sim(rig, maps, *, seed: int, device: str = "cpu"):
+    yield {"sample": SimBackend(rig, maps, seed=seed, device=device),
+           "empty": SimBackend(rig, None, seed=seed, device=device)}
+
+
+BACKENDS = {"sim": _open_sim, "hardware": open_hardware}
+
+
+def open_backends(name: str, rig, maps, *, seed: int, device: str = "cpu", **options):
+    """The 'sample' and 'empty' backends of `name`, open for the length of a `with` block."""
+    return BACKENDS[name](rig, maps, seed=seed, device=device, **options)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import random
 import select
@@ -26,12 +25,12 @@ import subprocess
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass, field
 
 from twin.capture.backends.led_protocol import (LIST_ENTRY, MAX_CHUNK, MAX_PAYLOAD, NAK, NO_SLOT, READ_ARGS, REPLY,
                                                 SLOT_CRC, STATE, VERSION, WRITE_HEAD, Cmd, DeviceInfo, Frame,
                                                 FrameError, FrameReader, SlotFlag, State, Status, cobs_decode,
                                                 crc32, encode_frame)
+from twin.capture.backends.faults import FAULT_KINDS, Faults, FaultSpec
 from twin.capture.plan import CaptureError
 
 FIRMWARE_NAME = "hemicube-twin emulator"
@@ -144,113 +143,6 @@ class Firmware:
             src = self.display if slot == NO_SLOT else (self.slots[slot] or bytes(self.size))
             return Status.OK, bytes(src[off:off + n])
         return Status.UNKNOWN, b""
-
-
-FAULT_KINDS = {  # kind -> the directions it applies to ("in": host to device, "out": device to host)
-    "drop": ("in", "out"),      # one byte of the frame removed
-    "corrupt": ("in", "out"),   # one byte of the frame XORed with a random non-zero value
-    "dup": ("in", "out"),       # the frame twice in a row
-    "delay": ("in", "out"),     # the frame held back for delay_s
-    "reset": ("in",),           # the device resets part-way through receiving the frame
-    "stuck": ("out",),          # the device repeats its previous reply instead of this one
-}
-
-
-@dataclass
-class FaultSpec:
-    rates: dict = field(default_factory=dict)  # kind -> probability per frame
-    flip: float = 0.0                          # probability per byte of a random bit error, both ways
-    delay_s: float = 0.5
-    seed: int = 0
-
-    GRAMMAR = ("comma-separated KIND=P (KIND: " + ", ".join(FAULT_KINDS) + "; P: probability per frame), "
-               "flip=Q (random bit errors, probability per byte), delay_s=SECONDS, seed=N")
-
-    @classmethod
-    def parse(cls, text: str | None) -> "FaultSpec":
-        spec = cls()
-        for item in filter(None, (s.strip() for s in (text or "").split(","))):
-            key, eq, value = item.partition("=")
-            try:
-                if not eq:
-                    raise ValueError
-                if key == "seed":
-                    spec.seed = int(value)
-                    continue
-                v = float(value)
-            except ValueError:
-                raise CaptureError(f"--faults: {item!r} is not KEY=NUMBER; expected {cls.GRAMMAR}") from None
-            if key in FAULT_KINDS or key == "flip":
-                if not 0.0 <= v <= 1.0:
-                    raise CaptureError(f"--faults: {key} must be a probability in [0, 1], got {v}")
-                if key == "flip":
-                    spec.flip = v
-                else:
-                    spec.rates[key] = v
-            elif key == "delay_s" and v >= 0:
-                spec.delay_s = v
-            else:
-                raise CaptureError(f"--faults: unknown or invalid {item!r}; expected {cls.GRAMMAR}")
-        for d in ("in", "out"):
-            total = sum(p for k, p in spec.rates.items() if d in FAULT_KINDS[k])
-            if total > 1.0:
-                raise CaptureError(f"--faults: the per-frame probabilities of one direction sum to {total} > 1")
-        return spec
-
-    def __str__(self):
-        parts = [f"{k}={v:g}" for k, v in self.rates.items()] + ([f"flip={self.flip:g}"] if self.flip else [])
-        return ",".join(parts + [f"delay_s={self.delay_s:g}", f"seed={self.seed}"]) if parts else "none"
-
-
-class Faults:
-    """Seeded fault decisions: at most one frame fault per frame, then independent per-byte bit errors."""
-
-    def __init__(self, spec: FaultSpec):
-        self.spec = spec
-        self._rng = random.Random(spec.seed)
-        self._until_flip = {"in": self._gap(), "out": self._gap()}
-        self.counts: dict[str, int] = {}
-
-    def _gap(self) -> float:
-        """Bytes before the next bit error (geometric), so that clean bytes cost nothing to decide."""
-        q = self.spec.flip
-        if q <= 0:
-            return math.inf
-        if q >= 1:
-            return 0
-        return int(math.log(1.0 - self._rng.random()) / math.log1p(-q))
-
-    def pick(self, direction: str) -> str | None:
-        u = self._rng.random()
-        for kind, p in self.spec.rates.items():
-            if direction in FAULT_KINDS[kind]:
-                if u < p:
-                    self.counts[f"{kind}_{direction}"] = self.counts.get(f"{kind}_{direction}", 0) + 1
-                    return kind
-                u -= p
-        return None
-
-    def damage(self, wire: bytes, kind: str) -> bytes:
-        """drop/corrupt one byte of a frame's encoded bytes (never its delimiter: bit errors cover that)."""
-        i = self._rng.randrange(len(wire) - 1)
-        if kind == "drop":
-            return wire[:i] + wire[i + 1:]
-        return wire[:i] + bytes([wire[i] ^ self._rng.randrange(1, 256)]) + wire[i + 1:]
-
-    def flips(self, data: bytes, direction: str) -> tuple[bytes, int]:
-        """`data` with this direction's bit errors applied, and how many."""
-        n = 0
-        buf = None
-        pos = self._until_flip[direction]
-        while pos < len(data):
-            buf = buf or bytearray(data)
-            buf[int(pos)] ^= 1 << self._rng.randrange(8)
-            n += 1
-            pos += 1 + self._gap()
-        self._until_flip[direction] = pos - len(data)
-        if n:
-            self.counts[f"flip_{direction}"] = self.counts.get(f"flip_{direction}", 0) + n
-        return (bytes(buf) if buf is not None else data), n
 
 
 class Device:

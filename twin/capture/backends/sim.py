@@ -35,11 +35,12 @@ class SimBackend:
         for k, img in zip(todo, imgs):
             self._radiance[(camera, patterns.levels[k].tobytes())] = img
 
-    def show(self, levels: np.ndarray) -> None:
+    def show(self, levels: np.ndarray) -> dict:
         levels = np.asarray(levels)
         if levels.shape != (self.rig.num_leds, 3) or levels.dtype != np.uint8:
             raise ValueError(f"LED levels must be uint8 ({self.rig.num_leds}, 3), got {levels.dtype} {levels.shape}")
         self._levels = levels
+        return {}
 
     def _current(self, camera: str) -> np.ndarray:
         if self._levels is None:
@@ -60,4 +61,7 @@ class SimBackend:
         cam = self.rig.camera(camera)
         return simulate_raw(self._current(camera), sensor=cam.sensor, exposure_s=exposure_s, seed=self.seed,
                             frame=frame, camera_key=f"{self.rig.digest()}/{camera}", device=self.device)
+
+    def grab_bracket(self, camera: str, exposures_s, frames):
+        return [self.grab(camera, t, f) for t, f in zip(exposures_s, frames)], list(exposures_s), {}
 

@@ -1,0 +1,141 @@
+"""The hardware backend: the serial LED controller (led_host) and the rig's cameras through pypylon
+(pylon_cameras), behind the same interface as the simulator, so that `hemicube capture --backend hardware`
+runs the same plan, session folder and resume.
+
+    --cameras basler     the real a2A5328-15ucPRO cameras; exposures metered from preview frames
+    --cameras emulated   pylon's camera emulation, fed with raw frames the twin renders from the pattern the
+                         controller ACKNOWLEDGES as displayed (so a wrong pattern shown would be a wrong photo),
+                         metered by the twin: the photos equal `--backend sim`'s, byte for byte
+
+For each photo: `show` uploads and latches the pattern and keeps the controller's acknowledgement (its
+displayed CRC goes into the manifest); `grab_bracket` takes the exposure bracket as one grab session and keeps
+it only if, afterwards, the controller still displays that pattern under the same boot id (else it lights
+it again and retakes the bracket); the camera frame ids and any retakes go into the manifest.
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from twin.capture.backends.led_protocol import crc32
+from twin.capture.backends.sim import SimBackend
+from twin.capture.plan import CaptureError, DeviceError
+
+CAMERA_KINDS = ("emulated", "basler")
+
+
+class Devices:
+    """What the 'sample' and the 'empty' backends share: one controller link and the cameras."""
+
+    def __init__(self, led, cameras: dict, prompt=None):
+        self.led, self.cameras, self.prompt = led, cameras, prompt
+
+
+class HardwareBackend:
+    name = "hardware"
+
+    def __init__(self, rig, devices: Devices, twin: SimBackend | None, *, empty_board: bool = False):
+        self.rig, self.devices, self.twin = rig, devices, twin
+        self._empty_board = empty_board  # this backend's photos need the sample taken off the board
+        self._known: dict[int, np.ndarray] = {}  # CRC -> levels, for every pattern shown
+        self._levels = None
+        self._ack = None
+
+    def surfaces(self, camera: str):
+        return self.twin.surfaces(camera) if self.twin is not None else None
+
+    def prepare(self, camera: str, patterns) -> None:
+        for levels in patterns.levels:  # store them on the controller while its slots last
+            self.devices.led.load(levels)
+        if self.twin is not None:
+            self.twin.prepare(camera, patterns)
+
+    def show(self, levels: np.ndarray) -> dict:
+        levels = np.asarray(levels)
+        if levels.shape != (self.rig.num_leds, 3) or levels.dtype != np.uint8:
+            raise ValueError(f"LED levels must be uint8 ({self.rig.num_leds}, 3), got {levels.dtype} {levels.shape}")
+        if self._empty_board and self.devices.prompt is not None:
+            self.devices.prompt("take the sample off the board for the empty-board photo, then press Enter")
+            self.devices.prompt = None
+        self._levels = levels
+        self._known[crc32(levels.tobytes())] = levels
+        self._ack = self.devices.led.show(levels)
+        return {"led_crc": f"{self._ack.displayed_crc:08x}"}
+
+    def _displayed(self) -> np.ndarray:
+        """The levels of the pattern the controller acknowledged as displayed."""
+        try:
+            return self._known[self._ack.displayed_crc]
+        except KeyError:
+            raise DeviceError(f"the LED controller displays a pattern this capture never sent (CRC "
+                              f"{self._ack.displayed_crc:08x})") from None
+
+    def meter(self, camera: str) -> float:
+        if self.twin is None:
+            return self.devices.cameras[camera].meter(self.rig.camera(camera).sensor)
+        self.twin.show(self._displayed())
+        return self.twin.meter(camera)
+
+    def _still_lit(self) -> str | None:
+        """None when the controller still shows what it acknowledged; else light the pattern again and say why
+        the frames just taken cannot be kept."""
+        state = self.devices.led.query()
+        if (state.displayed_crc, state.boot_id) == (self._ack.displayed_crc, self._ack.boot_id):
+            return None
+        self._ack = self.devices.led.show(self._levels)
+        return f"the LEDs changed during the bracket (displayed {state.displayed_crc:08x})"
+
+    def _render(self, camera: str, frames):
+        """What the emulated camera is fed: the twin's raw frames of the acknowledged pattern."""
+        def render(applied):
+            self.twin.show(self._displayed())
+            return [self.twin.grab(camera, t, f) for t, f in zip(applied, frames)]
+        return render
+
+    def grab_bracket(self, camera: str, exposures_s, frames):
+        render = self._render(camera, frames) if self.twin is not None else None
+        raws, applied, ids, retakes = self.devices.cameras[camera].grab_bracket(exposures_s, render, self._still_lit)
+        return raws, applied, {"camera_frames": ids, **({"retakes": retakes} if retakes else {})}
+
+
+@contextmanager
+def open_hardware(rig, maps, *, seed: int, device: str = "cpu", led: str | None = None, cameras: str | None = None,
+                  camera_serials=None, camera_faults: str | None = None, led_baud: int | None = None, prompt=None):
+    """{'sample': backend, 'empty': backend} over one controller link and one set of cameras."""
+    from twin.capture.backends.faults import CameraFaults
+    from twin.capture.backends.led_host import DEFAULT_BAUD, LedController
+    from twin.capture.backends.pylon_cameras import PylonCamera, camera_serials as find_serials, import_pylon
+
+    if not led:
+        raise CaptureError("--backend hardware needs --led URL (the LED controller: /dev/ttyACM0, socket://HOST:PORT)")
+    if cameras not in CAMERA_KINDS:
+        raise CaptureError(f"--backend hardware needs --cameras {' or '.join(CAMERA_KINDS)}, got {cameras!r}")
+    if camera_faults and cameras != "emulated":
+        raise CaptureError("--camera-faults injects faults into emulated cameras only")
+    emulated = cameras == "emulated"
+    names = list(rig.cameras)
+    faults = CameraFaults(camera_faults) if camera_faults else None
+    import_pylon(len(names) if emulated else None)
+    feed = Path(tempfile.mkdtemp(prefix="hemicube-camemu-")) if emulated else None
+    opened = []
+    ctl = LedController(led, rig.num_leds, baudrate=led_baud or DEFAULT_BAUD)
+    try:
+        for name, serial in zip(names, find_serials(names, cameras, camera_serials)):
+            cam = rig.camera(name)
+            opened.append(PylonCamera(name, serial, cameras, cam.width, cam.height,
+                                      feed_dir=feed / name if emulated else None, faults=faults))
+        devices = Devices(ctl, dict(zip(names, opened)), prompt=None if emulated else prompt)
+        twins = ({k: SimBackend(rig, m, seed=seed, device=device) for k, m in (("sample", maps), ("empty", None))}
+                 if emulated else {"sample": None, "empty": None})
+        yield {"sample": HardwareBackend(rig, devices, twins["sample"]),
+               "empty": HardwareBackend(rig, devices, twins["empty"], empty_board=True)}
+    finally:
+        for cam in opened:
+            cam.close()
+        ctl.close()
+        if feed is not None:
+            shutil.rmtree(feed, ignore_errors=True)
