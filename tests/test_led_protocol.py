@@ -157,7 +157,7 @@ def test_every_fault_kind_is_survived(kind, tmp_path):
     rate = "flip=2e-4" if kind == "flip" else f"{kind}=0.08"
     log = tmp_path / "emu.jsonl"
     proc, url = spawn(LEDS, faults=f"{rate},delay_s=0.08,seed=5", log=log)
-    pats = _patterns(15, seed=1)
+    pats = _patterns(10, seed=1)
     try:
         with LedController(url, LEDS, timeout_s=0.05, backoff_s=0.002, audit=True) as ctl:
             for p in pats:

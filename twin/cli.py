@@ -116,9 +116,9 @@ def cmd_capture(args) -> int:
     devices = {"led": args.led, "led_baud": args.led_baud, "cameras": args.cameras,
                "camera_serials": args.camera_serials.split(",") if args.camera_serials else None,
                "camera_faults": args.camera_faults, "prompt": input if args.cameras == "basler" else None}
+    devices = {k: v for k, v in devices.items() if v is not None}  # the simulator refuses any
     out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
-                  resolution=args.resolution, learned=learned, progress=not args.no_progress,
-                  devices=devices if args.backend != "sim" else None)
+                  resolution=args.resolution, learned=learned, progress=not args.no_progress, devices=devices)
     bad = verify(out)
     if bad:
         print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)

@@ -49,9 +49,13 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
 
         todo = [p for p in plan if not session.photo_done(p)]
         index = {n: k for k, n in enumerate(patterns.names)}
-        for kind in ("sample", "empty"):  # render every pending pattern of a camera in one pass
+        # Render every pattern of a camera in one pass, all of them whenever one is pending: BLAS does not
+        # sum a one-pattern product in the same order as a many-pattern one (the last bit differs, and so may
+        # the sensor's Poisson draws), so a resumed photo is bit-identical only if rendered in the same batch.
+        for kind in ("sample", "empty"):
             for cam in rig.cameras:
-                need = sorted({index[p.pattern] for p in todo if p.camera == cam and p.sample == kind})
+                mine = [p for p in plan if p.camera == cam and p.sample == kind]
+                need = sorted({index[p.pattern] for p in mine}) if any(p in todo for p in mine) else []
                 if need:
                     sims[kind].prepare(cam, PatternSet(patterns.levels[need],
                                                        tuple(patterns.names[k] for k in need), rig.name))
