@@ -142,7 +142,21 @@ def cmd_controller_info(args) -> int:
 
 def cmd_bench(args) -> int:
     from twin.bench import bench_capture, bench_lumitexel
+    from twin.capture import reliability
 
+    if args.bench_command in ("led-link", "resume", "camera-faults"):
+        import tempfile
+
+        work = args.workdir or tempfile.mkdtemp(prefix=f"hemicube-bench-{args.bench_command}-")
+        if args.bench_command == "led-link":
+            res = reliability.bench_led_link(args.uploads, args.leds, args.rate, args.flip, tuple(args.kinds),
+                                             args.timeout, args.delay, args.link, args.seed, work)
+        elif args.bench_command == "resume":
+            res = reliability.bench_resume(args.kills, args.seed, work)
+        else:
+            res = reliability.bench_camera_faults(args.faults, args.seed, work)
+        print(json.dumps({**res, "workdir": str(work)}, indent=2))
+        return 0
     if args.bench_command == "lumitexel":
         res = bench_lumitexel(args.rig, args.device, args.leds, args.points, args.patterns, args.repeats,
                               not args.no_compile)
@@ -265,6 +279,40 @@ def register_bench(bench) -> None:
                    "(default: %(default)s)")
     s.add_argument("--hdr-photos", type=int, default=4, help="photos whose HDR merge is timed "
                    "(default: %(default)s)")
+    s.set_defaults(func=cmd_bench)
+
+    from twin.capture.backends.faults import FAULT_KINDS
+
+    s = bench.add_parser("led-link", help="pattern uploads through the LED controller emulator, one fault kind "
+                         "at a time, then random bit errors (docs/reliability.md)")
+    s.add_argument("--uploads", type=int, default=10_000, help="uploads per fault kind (default: %(default)s)")
+    s.add_argument("--leds", type=int, default=16_384, help="LEDs per pattern (default: %(default)s, the paper rig)")
+    s.add_argument("--rate", type=float, default=0.01, help="share of frames hit by the fault (default: %(default)s)")
+    s.add_argument("--flip", type=float, default=1e-5, help="bit-error probability per byte of the last run; 0: "
+                   "no such run (default: %(default)s)")
+    s.add_argument("--kinds", nargs="*", default=list(FAULT_KINDS), choices=list(FAULT_KINDS),
+                   help="fault kinds, one run each (default: all)")
+    s.add_argument("--timeout", type=float, default=0.03, help="the host's reply timeout, s, beyond the frame's "
+                   "time on the wire (default: %(default)s)")
+    s.add_argument("--delay", type=float, default=0.06, help="how long a delayed frame is held, s: longer than "
+                   "the host waits, so that every delay ends in a timeout (default: %(default)s)")
+    s.add_argument("--link", choices=("pty", "socket"), default="pty", help="the emulator's link (default: "
+                   "%(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the patterns and the faults (default: %(default)s)")
+    s.add_argument("-o", "--workdir", help="folder for the emulator logs (default: a new temporary folder)")
+    s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("resume", help="a mini capture over the emulated devices SIGKILLed at random points and "
+                         "resumed, checked against the simulator's (docs/reliability.md)")
+    s.add_argument("--kills", type=int, default=20, help="kill points (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the kill points and faults (default: %(default)s)")
+    s.add_argument("-o", "--workdir", help="folder for the captures (default: a new temporary folder)")
+    s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("camera-faults", help="a mini capture with camera faults injected, checked against the "
+                         "simulator's (docs/reliability.md)")
+    s.add_argument("--faults", default="failed=0.02,disconnect=0.005,stray=0.02", help="camera faults per trigger "
+                   "(default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the faults (default: %(default)s)")
+    s.add_argument("-o", "--workdir", help="folder for the captures (default: a new temporary folder)")
     s.set_defaults(func=cmd_bench)
 
 

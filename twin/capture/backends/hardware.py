@@ -104,8 +104,9 @@ class HardwareBackend:
 
 @contextmanager
 def open_hardware(rig, maps, *, seed: int, device: str = "cpu", led: str | None = None, cameras: str | None = None,
-                  camera_serials=None, camera_faults: str | None = None, led_baud: int | None = None, prompt=None):
-    """{'sample': backend, 'empty': backend} over one controller link and one set of cameras."""
+                  camera_serials=None, camera_faults=None, led_baud: int | None = None, prompt=None):
+    """{'sample': backend, 'empty': backend} over one controller link and one set of cameras. `camera_faults`:
+    a spec, or a CameraFaults whose counts the caller reads afterwards."""
     from twin.capture.backends.faults import CameraFaults
     from twin.capture.backends.led_host import DEFAULT_BAUD, LedController
     from twin.capture.backends.pylon_cameras import PylonCamera, camera_serials as find_serials, import_pylon
@@ -118,7 +119,7 @@ def open_hardware(rig, maps, *, seed: int, device: str = "cpu", led: str | None 
         raise CaptureError("--camera-faults injects faults into emulated cameras only")
     emulated = cameras == "emulated"
     names = list(rig.cameras)
-    faults = CameraFaults(camera_faults) if camera_faults else None
+    faults = camera_faults if isinstance(camera_faults, CameraFaults) or not camera_faults else CameraFaults(camera_faults)
     import_pylon(len(names) if emulated else None)
     feed = Path(tempfile.mkdtemp(prefix="hemicube-camemu-")) if emulated else None
     opened = []

@@ -229,14 +229,15 @@ def write_chunks(slot: int, data: bytes, runs) -> list[bytes]:
 
 
 def changed_runs(old: bytes | None, new: bytes, gap: int = 16) -> list[tuple[int, int]]:
-    """Byte ranges [a, b) where `new` differs from `old` (all of it when `old` is unknown), merging runs
-    less than `gap` bytes apart: a new WRITE costs about 20 bytes of framing, so short gaps are cheaper
-    sent than skipped."""
-    if old is None:
-        return [(0, len(new))] if new else []
+    """Byte ranges [a, b) where `new` differs from `old` (all of it when `old` is unknown or most of it
+    changed), merging runs less than `gap` bytes apart: a new WRITE costs about 20 bytes of framing, so short
+    gaps are cheaper sent than skipped."""
     import numpy as np
 
-    diff = np.flatnonzero(np.frombuffer(old, np.uint8) != np.frombuffer(new, np.uint8))
+    changed = None if old is None else np.frombuffer(old, np.uint8) != np.frombuffer(new, np.uint8)
+    if changed is None or 2 * np.count_nonzero(changed) > len(new):
+        return [(0, len(new))] if new else []
+    diff = np.flatnonzero(changed)
     if diff.size == 0:
         return []
     breaks = np.flatnonzero(np.diff(diff) > gap)
