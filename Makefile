@@ -13,6 +13,7 @@ export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 export MPLBACKEND ?= Agg
 export DRJIT_CACHE_DIR ?= $(CURDIR)/.cache/drjit
+export GENICAM_CACHE_V3_5 ?= $(CURDIR)/.cache/genicam
 
 .PHONY: setup validate test
 setup: $(VENV)/.installed

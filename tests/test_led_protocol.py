@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import hemicube.cli
 from twin.capture.backends.faults import FaultSpec
 from twin.capture.backends.led_emulator import Firmware, spawn
 from twin.capture.backends.led_host import LedController
@@ -181,7 +182,7 @@ def test_every_fault_kind_is_survived(kind, tmp_path):
     assert set(stats.accepted_crcs) <= sent  # no reply the host acted on was damaged on the way
 
 
-def test_pty_link_and_the_cli():
+def test_pty_link_and_the_cli(capsys):
     proc = subprocess.Popen([sys.executable, "-m", "hemicube.cli", "controller", "serve", "--link", "pty",
                              "--rig", "mini"], stdout=subprocess.PIPE, text=True)
     try:
@@ -190,9 +191,22 @@ def test_pty_link_and_the_cli():
         p = _patterns(1)[0]
         with LedController(path, LEDS) as ctl:
             assert ctl.show(p).displayed_crc == crc32(p.tobytes())
+        assert hemicube.cli.main(["controller", "info", "--led", path]) == 0
+        info = json.loads(capsys.readouterr().out)
+        assert (info["leds"], info["displayed_crc"], info["stored_patterns"]) == (LEDS, f"{crc32(p.tobytes()):08x}", 1)
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_led_link_benchmark_runs(tmp_path):
+    """`hemicube bench led-link`, in miniature: its own checks hold (docs/reliability.md has the real run)."""
+    from twin.capture.reliability import bench_led_link
+
+    res = bench_led_link(uploads=12, leds=LEDS, rate=0.05, flip=1e-4, kinds=("corrupt", "stuck"), link="socket",
+                         workdir=tmp_path)
+    assert res["all_good"] and len(res["runs"]) == 3
+    assert all(r["faults_injected"] for r in res["runs"])
 
 
 def test_clear_errors_after_retries():

@@ -97,6 +97,20 @@ def test_failure_before_the_first_photo_removes_only_a_new_folder(tmp_path):
     assert CaptureSession.open(tmp_path / "kept").verify() == []
 
 
+def test_resume_removes_what_a_killed_writer_left(tmp_path):
+    header = {"format": "hemicube-capture", "version": 1, "rig": "mini", "rig_digest": "x"}
+    with CaptureSession.create(tmp_path / "c", header) as s:
+        s.write_photo(Photo(0, "primary", 0, "p", "sample"), [np.zeros((4, 4), np.uint16)],
+                      np.zeros((4, 4, 3), np.float32), {"exposures_s": [1e-3]})
+    half = [tmp_path / "c" / ".img00001_cam00.exr.k2j4.exr", tmp_path / "c" / "raw" / ".img00001_cam00_e0.x.y"]
+    for p in half:  # twin.atomic's temporary files, as a SIGKILL mid-write leaves them
+        p.write_bytes(b"half")
+    (tmp_path / "c" / ".rig.tmp").mkdir()
+    CaptureSession.create(tmp_path / "c", header).close()
+    assert sorted(p.name for p in (tmp_path / "c").rglob(".*")) == [".lock"]
+    assert CaptureSession.open(tmp_path / "c").verify() == []
+
+
 def test_open_refuses_what_is_not_a_capture(tmp_path):
     with pytest.raises(CaptureError, match="not a capture folder"):
         CaptureSession.open(tmp_path)

@@ -170,8 +170,8 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     import warp as wp
 
     import twin
-    from twin.capture.plan import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S, build_patterns, frame_id, paper_plan
-    from twin.camera.hdr import choose_bracket, merge_hdr
+    from twin.capture.plan import BRACKET, bracket_exposures, build_patterns, frame_id, paper_plan
+    from twin.camera.hdr import merge_hdr
     from twin.camera.imaging import render, trace_pixels
     from twin.materials.samples import load_sample
     from twin.camera.sensor import simulate_raw
@@ -214,15 +214,14 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     for photo in plan:
         img = images[(photo.sample, photo.camera)][index[photo.pattern]]
         cam = rig.camera(photo.camera)
-        exposures = np.clip(choose_bracket(max(float(img.max()), 1e-12), cam.sensor, n=BRACKET,
-                                           ratio=BRACKET_RATIO), *EXPOSURE_LIMITS_S)
+        exposures = bracket_exposures(float(img.max()), cam.sensor)
         t0 = time.perf_counter()
-        raws = [simulate_raw(img, sensor=cam.sensor, exposure_s=float(t), seed=seed, frame=frame_id(photo, j),
+        raws = [simulate_raw(img, sensor=cam.sensor, exposure_s=t, seed=seed, frame=frame_id(photo, j),
                              camera_key=photo.camera, device=device) for j, t in enumerate(exposures)]
         t_sensor += time.perf_counter() - t0
         if merged < hdr_photos:
             t0 = time.perf_counter()
-            merge_hdr(raws, [float(t) for t in exposures], cam.sensor)
+            merge_hdr(raws, exposures, cam.sensor)
             t_hdr += time.perf_counter() - t0
             merged += 1
     res["sensor_s"] = t_sensor

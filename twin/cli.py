@@ -115,7 +115,8 @@ def cmd_capture(args) -> int:
         learned.check_rig(rig)
     devices = {"led": args.led, "led_baud": args.led_baud, "cameras": args.cameras,
                "camera_serials": args.camera_serials.split(",") if args.camera_serials else None,
-               "camera_faults": args.camera_faults, "prompt": input if args.cameras == "basler" else None}
+               "camera_faults": args.camera_faults,
+               "prompt": input if args.backend == "hardware" and args.cameras == "basler" else None}
     devices = {k: v for k, v in devices.items() if v is not None}  # the simulator refuses any
     out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
                   resolution=args.resolution, learned=learned, progress=not args.no_progress, devices=devices)

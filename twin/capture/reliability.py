@@ -117,18 +117,20 @@ def check_capture(out: Path, ref: Path) -> dict:
     from twin.capture.session import CaptureSession
 
     hw, sim = CaptureSession.open(out), CaptureSession.open(ref)
+    listed = set(hw.files) | {"manifest.json", ".lock"}
+    unlisted = [p for p in out.rglob("*") if p.is_file() and str(p.relative_to(out)) not in listed]
     patterns = hw.patterns()
     crc = {n: f"{crc32(patterns.levels[i].tobytes()):08x}" for i, n in enumerate(patterns.names)}
     frames, retakes = {}, {}
     for rec in hw.photos.values():
-        frames.setdefault(rec["camera"], []).extend(tuple(f) for f in rec.get("camera_frames", []))
+        frames.setdefault(rec["camera"], []).extend((rec["camera_run"], *f) for f in rec.get("camera_frames", []))
         for reason in rec.get("retakes", []):
             retakes[reason] = retakes.get(reason, 0) + 1
     photos = {k for k in sim.files if k.startswith(("img", "raw/"))}
     return {
         "photos": len(hw.photos), "photos_planned": len(hw.header["plan"]),
         "photos_lost": len(hw.header["plan"]) - len(hw.photos),
-        "files_failing_checksum": len(hw.verify()),
+        "files_failing_checksum": len(hw.verify()), "files_not_in_the_manifest": len(unlisted),
         "photos_or_raw_frames_differing_from_the_simulator": sum(hw.files.get(k) != sim.files[k] for k in photos),
         "photos_acknowledged_with_another_pattern": sum(r["led_crc"] != crc[r["pattern"]] for r in hw.photos.values()),
         "camera_frames_used_twice": sum(len(v) - len(set(v)) for v in frames.values()),

@@ -12,8 +12,8 @@ reconstruction and validation read it through `CaptureSession.open`; no other mo
     .lock                       held (flock) by the one writer while a capture runs
 
 Writing: every file is written atomically, and the manifest (rewritten atomically after each photo) lists a
-file only once it is complete, so a killed capture resumes: re-running verifies the listed files, keeps the
-verified photos and takes the rest. A folder made with another rig, sample, seed or plan is refused, and so
+file only once it is complete, so a killed capture resumes: re-running removes the temporary files the killed
+writer left, verifies the listed files, keeps the verified photos and takes the rest. A folder made with another rig, sample, seed or plan is refused, and so
 is a second writer while the first runs (the lock is the kernel's: it goes with the process, killed or not).
 A folder this writer created is removed again when the capture fails before its first photo.
 Reading: each file is checked against the manifest's sha256 as it is read; the first that fails is named.
@@ -205,9 +205,17 @@ class CaptureSession:
         session = cls(d, dict(header), files, photos)
         session._created = created
         session._lock()
+        session._remove_leftovers()
         if not (d / MANIFEST).exists():
             session.save()  # from here on the folder is a capture folder, resumable whatever is killed next
         return session
+
+    def _remove_leftovers(self) -> None:
+        """A writer killed mid-write leaves its temporary files (twin.atomic: '.NAME.XXXX', never listed in
+        the manifest); the lock is ours, so nobody else is writing them."""
+        for p in sorted(self.dir.rglob(".*"), reverse=True):
+            if p.name != LOCK and p.exists():
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
 
     def _lock(self) -> None:
         fd = os.open(self.dir / LOCK, os.O_RDWR | os.O_CREAT, 0o644)

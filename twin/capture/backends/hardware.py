@@ -14,8 +14,10 @@ it again and retakes the bracket); the camera frame ids and any retakes go into 
 """
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -29,10 +31,13 @@ CAMERA_KINDS = ("emulated", "basler")
 
 
 class Devices:
-    """What the 'sample' and the 'empty' backends share: one controller link and the cameras."""
+    """What the 'sample' and the 'empty' backends share: one controller link and the cameras. `run` names
+    this process's use of them: camera frame ids ([grab session, BlockID]) restart with every run, so the
+    manifest keys them by run (a resumed capture has several)."""
 
     def __init__(self, led, cameras: dict, prompt=None):
         self.led, self.cameras, self.prompt = led, cameras, prompt
+        self.run = f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}"
 
 
 class HardwareBackend:
@@ -99,7 +104,31 @@ class HardwareBackend:
     def grab_bracket(self, camera: str, exposures_s, frames):
         render = self._render(camera, frames) if self.twin is not None else None
         raws, applied, ids, retakes = self.devices.cameras[camera].grab_bracket(exposures_s, render, self._still_lit)
-        return raws, applied, {"camera_frames": ids, **({"retakes": retakes} if retakes else {})}
+        return raws, applied, {"camera_run": self.devices.run, "camera_frames": ids,
+                               **({"retakes": retakes} if retakes else {})}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's
+    return True
+
+
+def _feed_folder() -> Path:
+    """This process's folder of images for the emulated cameras; those of processes that are gone (killed
+    captures) are removed."""
+    root = Path(tempfile.gettempdir())
+    for old in root.glob("hemicube-camemu-*"):
+        pid = old.name.rpartition("-")[2]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    folder = root / f"hemicube-camemu-{os.getpid()}"
+    shutil.rmtree(folder, ignore_errors=True)
+    return folder
 
 
 @contextmanager
@@ -121,7 +150,7 @@ def open_hardware(rig, maps, *, seed: int, device: str = "cpu", led: str | None 
     names = list(rig.cameras)
     faults = camera_faults if isinstance(camera_faults, CameraFaults) or not camera_faults else CameraFaults(camera_faults)
     import_pylon(len(names) if emulated else None)
-    feed = Path(tempfile.mkdtemp(prefix="hemicube-camemu-")) if emulated else None
+    feed = _feed_folder() if emulated else None
     opened = []
     ctl = LedController(led, rig.num_leds, baudrate=led_baud or DEFAULT_BAUD)
     try:
