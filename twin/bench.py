@@ -5,8 +5,11 @@ bench lumitexel: LED-BRDF evaluations per second (points x LEDs / second) of
   * the Warp fused kernel (64-pattern measurements, lumitexels never stored),
   * the baseline: a plain batched-torch version of the same formula (Eq. 1 with the same GGX,
     Lambertian LEDs, no visibility; then an einsum with the patterns), eager and torch.compile'd.
-The Warp kernels run with visibility off so both sides compute the same thing; the JSON reports the
-largest relative difference between Warp and the torch baseline as a cross-check.
+The Warp kernels run with visibility off so both sides compute the same thing.
+
+Every benchmark checks that its same-run baseline computes the same thing as the measured path
+(`same_work`: elementwise |got - ref| <= rtol |ref| + atol max|ref|, tolerances stated in the JSON) and
+reports "passed"; the command exits non-zero when a check fails, so a drifted baseline cannot go unnoticed.
 """
 from __future__ import annotations
 
@@ -30,8 +33,48 @@ def random_points(P: int, seed: int = 0, half_size: float = 75.0, plane_z: float
                 alpha_x=np.exp(rng.uniform(la, lb, P)), alpha_y=np.exp(rng.uniform(la, lb, P)))
 
 
-def torch_lumitexel(pos, n, t, rd, rs, ax, ay, lpos, lnrm, cam):
-    """Plain batched torch Eq. 1 (physical convention, Lambertian LEDs, V = 1): (P, L, 3)."""
+def same_work(name: str, got, ref, *, rtol: float, atol: float = 0.0) -> dict:
+    """Whether `got` computes what `ref` does: every element within rtol |ref| + atol max|ref| (and finite).
+    The record names the check, its tolerances, the largest relative difference and the worst element's
+    share of its bound (<= 1 passes)."""
+    got = np.asarray(got, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    rec = {"check": name, "rtol": rtol, "atol_of_max": atol}
+    if got.shape != ref.shape:
+        return {**rec, "passed": False, "error": f"shape {got.shape} vs {ref.shape}"}
+    scale = float(np.abs(ref).max()) if ref.size else 0.0
+    err = np.abs(got - ref)
+    bound = rtol * np.abs(ref) + atol * scale
+    finite = bool(np.all(np.isfinite(got)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(err == 0, 0.0, err / bound)
+        rel = np.where(err == 0, 0.0, err / np.abs(ref))
+    worst = float(share.max()) if share.size else 0.0
+    return {**rec, "max_rel_diff": float(rel.max()) if rel.size else 0.0, "worst_share_of_bound": worst,
+            "passed": finite and worst <= 1.0}
+
+
+def finish_checks(result: dict, checks: list[dict]) -> dict:
+    result["checks"] = checks
+    result["passed"] = all(c["passed"] for c in checks)
+    return result
+
+
+def bench_exit(res: dict) -> int:
+    """A bench command's exit code: 1, naming the failed checks on stderr, when its baseline did not compute
+    the same thing (or no check ran)."""
+    import sys
+
+    bad = [c["check"] for c in res.get("checks", []) if not c["passed"]]
+    if bad or not res.get("passed", False):
+        print(f"hemicube: error: the same-work check failed: {bad or 'no checks ran'}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def torch_lumitexel(pos, n, t, rd, rs, ax, ay, lpos, lnrm, lint, lexp, cam):
+    """Plain batched torch Eq. 1 (physical convention, cosine-power LED profile A = cos^p with the rig's
+    intensities I_l, V = 1): (P, L, 3)."""
     import torch
 
     d = lpos[None] - pos[:, None]  # mm
@@ -58,9 +101,9 @@ def torch_lumitexel(pos, n, t, rd, rs, ax, ay, lpos, lnrm, cam):
     fs = D * F * G / (4 * ci * co)
     f = rd[:, None] / math.pi + rs[:, None] * fs[..., None]
     cos_l = -(wi * lnrm[None]).sum(-1)
-    geo = ci.clamp(min=0) * cos_l.clamp(min=0) / (r2 * 1e-6)
+    geo = ci.clamp(min=0) * cos_l.clamp(min=0) ** lexp[None] / (r2 * 1e-6)
     valid = (ci > 0) & (co > 0) & (cos_l > 0)
-    return torch.where(valid[..., None], f * geo[..., None], torch.zeros_like(f))
+    return torch.where(valid[..., None], f * geo[..., None] * lint[None], torch.zeros_like(f))
 
 
 def _time(fn, sync, repeats):
@@ -75,6 +118,10 @@ def _time(fn, sync, repeats):
     return best
 
 
+LUMITEXEL_RTOL = 1e-4  # float32 sums of L non-negative terms in different orders: ~sqrt(L) * 2^-24
+LUMITEXEL_ATOL = 1e-6  # of the largest value: terms far below it carry float32 evaluation noise only
+
+
 def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patterns=64, repeats=5,
                     compile_torch=True):
     import torch
@@ -82,12 +129,16 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
 
     import twin
     from twin.optics import lumitexel as K
+    from twin.optics.emitter import PROFILE_COSINE, PROFILE_MODES
     from twin.optics.inputs import CONVENTIONS, _device_inputs, _led_inputs, make_options
     from twin.optics.fused import fused_measurements
-    
+
     from dataclasses import replace
 
     rig = twin.load_rig(rig_name)
+    if PROFILE_MODES[rig.led_profile] != PROFILE_COSINE:
+        raise ValueError(f"bench lumitexel's torch baseline models cosine-power LED profiles only; rig "
+                         f"{rig.name!r} has {rig.led_profile!r}")
     # Upper LEDs only: the plain formula has no notion of light arriving through the acrylic from below
     # (a tilted normal would "see" a bottom LED), and the lumitexel of paper §6 is the 12,288 upper LEDs.
     upper = np.flatnonzero(~rig.is_bottom)
@@ -115,9 +166,12 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
 
     tdev = torch.device("cuda" if str(device).startswith("cuda") else "cpu")
     T = {k: torch.as_tensor(v, dtype=torch.float32, device=tdev) for k, v in pts.items()}
-    lpos = torch.tensor(rig.led_positions, dtype=torch.float32, device=tdev)
-    lnrm = torch.tensor(rig.led_normals, dtype=torch.float32, device=tdev)
-    camt = torch.as_tensor(rig.primary.centre, dtype=torch.float32, device=tdev)
+
+    def led(a):
+        return torch.tensor(np.asarray(a, np.float32), device=tdev)
+
+    lumi_args = (led(rig.led_positions), led(rig.led_normals), led(rig.leds.intensity), led(rig.leds.profile[:, 0]),
+                 led(rig.primary.centre))
     wt = torch.as_tensor(w, device=tdev)
     chunk = max(1, min(P, int(2e8 // (L * 3 * 8))))  # bound the eager intermediates' memory
 
@@ -127,7 +181,7 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
             for i in range(0, P, chunk):
                 s = slice(i, i + chunk)
                 lum = fn(T["position"][s], T["normal"][s], T["tangent"][s], T["rho_d"][s], T["rho_s"][s],
-                         T["alpha_x"][s], T["alpha_y"][s], lpos, lnrm, camt)
+                         T["alpha_x"][s], T["alpha_y"][s], *lumi_args)
                 outs.append(torch.einsum("klc,plc->pkc", wt, lum))
             return torch.cat(outs)
         return run
@@ -141,24 +195,28 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
         "warp_materialise_evals_per_s": P * L / t_mat, "warp_materialise_s": t_mat,
         "warp_fused_evals_per_s": P * L / t_fused, "warp_fused_s": t_fused,
     }
+    tol = dict(rtol=LUMITEXEL_RTOL, atol=LUMITEXEL_ATOL)
     with torch.no_grad():
         run_eager = torch_fused(torch_lumitexel)
         t_eager = _time(run_eager, tsync, max(1, repeats // 2))
         ref = run_eager().cpu().numpy()
         result["torch_eager_evals_per_s"] = P * L / t_eager
         result["torch_eager_s"] = t_eager
-        got = out.numpy()
-        result["max_rel_diff_warp_vs_torch"] = float(np.abs(got - ref).max() / np.abs(ref).max())
+        run_mat()
+        projected = torch.einsum("klc,plc->pkc", wt, wp.to_torch(m)).cpu().numpy()
+        checks = [same_work("warp_fused_vs_torch_eager", out.numpy(), ref, **tol),
+                  same_work("warp_materialise_projected_vs_torch_eager", projected, ref, **tol)]
         if compile_torch:
-            compiled = torch.compile(torch_lumitexel, dynamic=False)
-            t_comp = _time(torch_fused(compiled), tsync, max(1, repeats // 2))
+            run_comp = torch_fused(torch.compile(torch_lumitexel, dynamic=False))
+            t_comp = _time(run_comp, tsync, max(1, repeats // 2))
             result["torch_compile_evals_per_s"] = P * L / t_comp
             result["torch_compile_s"] = t_comp
+            checks.append(same_work("torch_compile_vs_torch_eager", run_comp().cpu().numpy(), ref, **tol))
     base = result.get("torch_compile_evals_per_s", result["torch_eager_evals_per_s"])
     result["baseline"] = "torch_compile" if "torch_compile_evals_per_s" in result else "torch_eager"
     result["fused_speedup_vs_baseline"] = result["warp_fused_evals_per_s"] / base
     result["materialise_speedup_vs_baseline"] = result["warp_materialise_evals_per_s"] / base
-    return result
+    return finish_checks(result, checks)
 
 
 def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, hdr_photos=4, seed=0):

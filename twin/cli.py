@@ -124,7 +124,7 @@ def cmd_capture(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from twin.bench import bench_capture, bench_lumitexel
+    from twin.bench import bench_capture, bench_exit, bench_lumitexel
 
     if args.bench_command == "lumitexel":
         res = bench_lumitexel(args.rig, args.device, args.leds, args.points, args.patterns, args.repeats,
@@ -132,7 +132,7 @@ def cmd_bench(args) -> int:
     else:
         res = bench_capture(args.rig, args.device, args.sample, args.resolution, args.hdr_photos)
     print(json.dumps(res, indent=2))
-    return 0
+    return bench_exit(res)
 
 
 def _pattern_image_args(s) -> None:
