@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from hemicube.cli import main
@@ -54,3 +55,21 @@ def test_bench_reconstruct_baseline_matches_and_drift_fails(capsys, monkeypatch)
     monkeypatch.setattr(ft, "finetune", drifted)
     rc, res, err = _run(RECON, capsys)
     assert rc == 1 and "finetune_batch100_vs_batched_lines" in err
+
+
+CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--resolution", "32", "--scale", "0.5"]
+
+
+def test_bench_capture_whole_plan_and_checks(capsys, monkeypatch):
+    rc, res, _ = _run(CAPTURE, capsys)
+    assert rc == 0 and res["passed"] and res["photos"] == 196
+    assert {"warmup", "trace", "render", "sensor", "hdr", "download"} <= set(res["seconds"])
+    names = {c["check"] for c in res["checks"]}
+    assert {"render_sample_primary", "render_sample_secondary", "render_empty_primary",
+            "hdr_merge_first_photo"} <= names
+    import twin.camera.imaging as imaging
+
+    plain = imaging.render_reference
+    monkeypatch.setattr(imaging, "render_reference", lambda *a, **kw: plain(*a, **kw) * np.float32(1.001))
+    rc, res, err = _run(CAPTURE, capsys)
+    assert rc == 1 and "render_sample_primary" in err

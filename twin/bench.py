@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -219,73 +220,111 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     return finish_checks(result, checks)
 
 
-def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, hdr_photos=4, seed=0):
-    """Seconds for the capture plan's simulation (both views, every photo), by stage: pixel tracing,
-    radiance of every pattern (fused kernel, and the unfused baseline: materialised lumitexels per chunk
-    of rays, then a product with the patterns), sensor simulation of every raw frame, and the HDR merge
-    (timed on `hdr_photos` photos; the plan total is extrapolated from them and labelled so). File
-    writing is excluded."""
+CAPTURE_RENDER_RTOL = 1e-5  # the device render vs the float32 fused kernel: float32 sums in other orders
+CAPTURE_RENDER_ATOL = 1e-6  # of the image's largest value
+
+
+def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, seed=0, scale=1.0,
+                  check_rows=8, output=None):
+    """Seconds for the whole capture plan's simulation on `device` (every photo of both views; no
+    extrapolation), by stage, with the production code (twin.capture.runner.photos): pixel tracing, the
+    render of every pattern, the sensor (exposure bracket and raw frames), the HDR merge, and the download
+    of the finished raw frames and HDR images to the host (files excluded). `output`: then also the real
+    `hemicube capture` into that folder, files written, timed whole. A warm-up on two rows of a camera
+    comes first (on a cold Warp cache it is the kernels' compilation).
+
+    Same work: on `check_rows` rows of every traced view, the trace against the numpy trace, and the render
+    of every pattern against the public forward model's fused float32 kernel with numpy finishing
+    (twin.camera.imaging's oracles); the first photo's HDR merge against the numpy merge."""
     import warp as wp
 
     import twin
-    from twin.capture.plan import BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S, build_patterns, frame_id, paper_plan
-    from twin.camera.hdr import choose_bracket, merge_hdr
-    from twin.camera.imaging import render, trace_pixels
+    from twin.camera.hdr import merge_hdr_numpy
+    from twin.camera.imaging import render_device, render_reference, trace_pixels, trace_pixels_numpy
+    from twin.camera.sensor import raw_frame, sensor_consts
+    from twin.capture.patterns import PatternSet
+    from twin.capture.plan import build_patterns, paper_plan
+    from twin.capture.runner import backends, photos
     from twin.materials.samples import load_sample
-    from twin.camera.sensor import simulate_raw
+    from twin.optics.inputs import check_device
 
-    from twin.optics.inputs import _init
+    from collections import defaultdict
+    from contextlib import contextmanager
+    from dataclasses import replace
 
-    _init()  # quiet: the JSON must be the only output
+    device = check_device(device)
     rig = twin.load_rig(rig_name)
+    if scale != 1.0:
+        rig = replace(rig, cameras={n: c.resized(scale) for n, c in rig.cameras.items()})
     maps = load_sample(sample, resolution=resolution)
     patterns = build_patterns(rig)
     plan = paper_plan(rig, patterns)
     index = {n: k for k, n in enumerate(patterns.names)}
-    sync = (lambda: wp.synchronize_device(device)) if str(device).startswith("cuda") else (lambda: None)
-    res = {"benchmark": "capture", "rig": rig_name, "device": device, "sample": sample,
-           "sample_resolution": resolution, "photos": len(plan), "raw_frames": len(plan) * BRACKET,
+    need = {(p.sample, p.camera): sorted({index[q.pattern] for q in plan if (q.sample, q.camera) == (p.sample, p.camera)})
+            for p in plan}
+    dev = wp.get_device(device)
+    res = {"benchmark": "capture", "rig": rig.name, "device": str(dev),
+           "device_name": dev.name if dev.is_cuda else platform.processor() or "cpu", "sample": sample,
+           "sample_resolution": resolution, "camera_scale": scale, "photos": len(plan), "warp_version": wp.__version__,
            "cameras": {n: [c.width, c.height] for n, c in rig.cameras.items()}}
-    t0 = time.perf_counter()
-    surf = {(kind, cam): trace_pixels(rig, cam, maps if kind == "sample" else None)
-            for kind in ("sample", "empty") for cam in rig.cameras
-            if any(p.camera == cam and p.sample == kind for p in plan)}
-    res["trace_s"] = time.perf_counter() - t0
-    res["rays"] = {f"{k}/{c}": int(s.kind.size) for (k, c), s in surf.items()}
-    images = {}
-    for method, chunk in (("fused", 1 << 20), ("materialise", 1 << 15)):
-        sync()
+    seconds = defaultdict(float)
+
+    @contextmanager
+    def stage(name):
+        wp.synchronize_device(dev)
         t0 = time.perf_counter()
-        evals = 0
-        for (kind, cam), s in surf.items():
-            need = sorted({index[p.pattern] for p in plan if p.camera == cam and p.sample == kind})
-            img = render(rig, cam, s, patterns.weights[need], device=device, chunk=chunk, method=method)
-            evals += int((s.kind != 0).sum()) * rig.num_leds
-            if method == "fused":
-                images[(kind, cam)] = dict(zip(need, img))
-        sync()
-        res[f"render_{method}_s"] = time.perf_counter() - t0
-    res["render_led_evaluations"] = evals
-    res["render_speedup_fused_vs_unfused"] = res["render_materialise_s"] / res["render_fused_s"]
-    t_sensor = t_hdr = 0.0
-    merged = 0
-    for photo in plan:
-        img = images[(photo.sample, photo.camera)][index[photo.pattern]]
-        cam = rig.camera(photo.camera)
-        exposures = np.clip(choose_bracket(max(float(img.max()), 1e-12), cam.sensor, n=BRACKET,
-                                           ratio=BRACKET_RATIO), *EXPOSURE_LIMITS_S)
+        yield
+        wp.synchronize_device(dev)
+        seconds[name] += time.perf_counter() - t0
+
+    with stage("warmup"):  # every kernel once, on two rows
+        cam0 = next(iter(rig.cameras))
+        s = trace_pixels(rig, cam0, maps, device=device, rows=(0, 2))
+        w = patterns.weights[[index["uniform"]] + ([index["bottom"]] if "bottom" in index else [])]
+        img = render_device(rig, cam0, s, w, device=device)
+        raws = wp.empty((1, 2, rig.camera(cam0).width), dtype=wp.uint16, device=dev)
+        raw_frame(img[0], sensor_consts(rig.camera(cam0).sensor, exposure_s=1e-3, seed=0, frame=0,
+                                        camera_key="warmup"), raws[0])
+        from twin.camera.hdr import merge_hdr_device
+
+        merge_hdr_device(raws, [1e-3], rig.camera(cam0).sensor)
+    with stage("trace"):
+        sims = backends(rig, maps, "sim", seed, device)
+        surfaces = {key: sims[key[0]].surfaces(key[1]) for key in need}
+    res["rays"] = {f"{k}/{c}": int(s.kind.shape[0]) for (k, c), s in surfaces.items()}
+    checked = None
+    for photo, raws, hdr, record in photos(rig, sims, patterns, plan, device, stage):
+        with stage("download"):
+            host = raws.numpy(), hdr["radiance"].numpy()
+        if checked is None:
+            checked = photo, record, host
+    res["seconds"] = dict(seconds)
+    res["total_s_files_excluded"] = sum(v for k, v in seconds.items() if k != "warmup")
+
+    checks = []
+    for (kind, cam), surf in surfaces.items():
+        H = rig.camera(cam).height
+        rows = (max(0, H // 2 - check_rows // 2), min(H, H // 2 - check_rows // 2 + check_rows))
+        m = maps if kind == "sample" else None
+        ours = trace_pixels(rig, cam, m, device=device, rows=rows).host()
+        ref = trace_pixels_numpy(rig, cam, m, rows=np.arange(*rows))
+        checks.append(same_work(f"trace_kind_{kind}_{cam}", ours.kind, ref.kind, rtol=0.0))
+        for f in ("position", "normal", "rho_d", "alpha_x"):
+            checks.append(same_work(f"trace_{f}_{kind}_{cam}", getattr(ours, f), getattr(ref, f).astype(np.float32),
+                                    rtol=2.0 ** -23))  # float32 rounding of the numpy float64 values, 1 ulp
+        w = patterns.weights[need[(kind, cam)]]
+        checks.append(same_work(f"render_{kind}_{cam}", render_device(rig, cam, ours, w, device=device).numpy(),
+                                render_reference(rig, cam, ours, w, device=device), rtol=CAPTURE_RENDER_RTOL,
+                                atol=CAPTURE_RENDER_ATOL))
+    photo, record, (raws_host, rad_host) = checked
+    ref = merge_hdr_numpy(list(raws_host), record["exposures_s"], rig.camera(photo.camera).sensor)
+    checks.append(same_work("hdr_merge_first_photo", rad_host, ref.radiance, rtol=0.0))
+
+    if output is not None:
+        from twin.capture.runner import capture
+
         t0 = time.perf_counter()
-        raws = [simulate_raw(img, sensor=cam.sensor, exposure_s=float(t), seed=seed, frame=frame_id(photo, j),
-                             camera_key=photo.camera, device=device) for j, t in enumerate(exposures)]
-        t_sensor += time.perf_counter() - t0
-        if merged < hdr_photos:
-            t0 = time.perf_counter()
-            merge_hdr(raws, [float(t) for t in exposures], cam.sensor)
-            t_hdr += time.perf_counter() - t0
-            merged += 1
-    res["sensor_s"] = t_sensor
-    res["hdr_merge_s_per_photo"] = t_hdr / max(merged, 1)
-    res["hdr_merge_s_plan_extrapolated"] = res["hdr_merge_s_per_photo"] * len(plan)
-    res["total_s_fused"] = res["trace_s"] + res["render_fused_s"] + res["sensor_s"] + res["hdr_merge_s_plan_extrapolated"]
-    res["total_s_unfused_baseline"] = res["total_s_fused"] - res["render_fused_s"] + res["render_materialise_s"]
-    return res
+        capture(rig, sample, output, seed=seed, device=device, resolution=resolution, progress=False)
+        res["total_s_files_written"] = time.perf_counter() - t0
+        res["output_bytes"] = sum(f.stat().st_size for f in Path(output).rglob("*") if f.is_file())
+    return finish_checks(res, checks)

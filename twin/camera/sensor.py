@@ -203,12 +203,12 @@ def fixed_pattern_at(fpn_seed: int, pid: int, prnu: wp.float64, dsnu: wp.float64
 
 
 @wp.kernel
-def raw_kernel(rad: wp.array3d(dtype=float), k: SensorConsts, out: wp.array2d(dtype=wp.uint16)):
+def raw_kernel(rad: wp.array2d(dtype=wp.vec3f), k: SensorConsts, out: wp.array2d(dtype=wp.uint16)):
     i, j = wp.tid()
     pid = i * ROW_STRIDE + j
     c = k.cfa[(i % 2) * 2 + (j % 2)]
     fp = fixed_pattern_at(k.fpn_seed, pid, k.prnu, k.dsnu)
-    mu = wp.float64(rad[i, j, c]) * k.e_per_rad * fp[0] + k.dark_e
+    mu = wp.float64(rad[i, j][c]) * k.e_per_rad * fp[0] + k.dark_e
     mu = wp.min(wp.max(mu, wp.float64(0.0)), k.mu_max)
     s = wp.rand_init(k.noise_seed, pid)
     n = poisson_quantile(mu, uniform52(wp.randu(s), wp.randu(s)))
@@ -307,7 +307,7 @@ def sensor_consts(sensor: SensorParams, *, exposure_s: float, gain_db: float = 0
 
 
 def raw_frame(radiance: wp.array, consts: SensorConsts, out: wp.array | None = None) -> wp.array:
-    """One raw frame on radiance's device, no host round trip: radiance (H, W, 3) float32 Warp array
+    """One raw frame on radiance's device, no host round trip: radiance (H, W) vec3f Warp array
     (non-negative, finite: the caller's guarantee) -> `out` (H, W) uint16 (allocated when None)."""
     H, W = radiance.shape[:2]
     _check_size(H, W)
@@ -328,7 +328,7 @@ def simulate_raw(radiance, *, sensor: SensorParams, exposure_s: float, gain_db: 
     _check_size(*rad.shape[:2])
     k = sensor_consts(sensor, exposure_s=exposure_s, gain_db=gain_db, seed=seed, frame=frame, camera_key=camera_key)
     _init()
-    rad_wp = wp.array(np.ascontiguousarray(rad, dtype=np.float32), dtype=float, device=device)
+    rad_wp = wp.array(np.ascontiguousarray(rad, dtype=np.float32), dtype=wp.vec3f, device=device)
     return raw_frame(rad_wp, k).numpy()
 
 
