@@ -242,7 +242,6 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     from twin.camera.hdr import merge_hdr_numpy
     from twin.camera.imaging import render_device, render_reference, trace_pixels, trace_pixels_numpy
     from twin.camera.sensor import raw_frame, sensor_consts
-    from twin.capture.patterns import PatternSet
     from twin.capture.plan import build_patterns, paper_plan
     from twin.capture.runner import backends, photos
     from twin.materials.samples import load_sample

@@ -439,13 +439,29 @@ def render_device(rig, camera_name: str, surfaces: PixelSurfaces, patterns, *, d
     same device (numpy surfaces are copied there)."""
     import torch
 
-    from twin.optics import lumitexel as KL
-    from twin.optics.inputs import CONVENTIONS, _init, _led_inputs, make_options, rig_arrays, validate_patterns
+    from twin.optics.inputs import _init, validate_patterns
 
     _init()
-    cam = rig.camera(camera_name)
     w = validate_patterns(patterns, rig.num_leds)
     dev = wp.get_device(device)
+    if not dev.is_cuda:
+        return _render(rig, camera_name, surfaces, w, dev, flat_field, chunk_bytes)
+    # Warp's launches and torch's products share torch's stream, so each reads what the other wrote; the
+    # device's Warp stream then waits for it, so later Warp work (the sensor) sees the images
+    stream = wp.stream_from_torch(torch.cuda.current_stream(wp.device_to_torch(dev)))
+    with wp.ScopedStream(stream):
+        out = _render(rig, camera_name, surfaces, w, dev, flat_field, chunk_bytes)
+    wp.get_stream(dev).wait_stream(stream)
+    return out
+
+
+def _render(rig, camera_name, surfaces, w, dev, flat_field, chunk_bytes):
+    import torch
+
+    from twin.optics import lumitexel as KL
+    from twin.optics.inputs import CONVENTIONS, _led_inputs, make_options, rig_arrays
+
+    cam = rig.camera(camera_name)
     tdev = wp.device_to_torch(dev)
     s = _on_device(surfaces, dev)
     H, Wd, S2 = s.height, s.width, s.supersample ** 2
