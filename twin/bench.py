@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import platform
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -220,6 +221,47 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     return finish_checks(result, checks)
 
 
+class _LoadLog:
+    """A Warp logger that keeps the module-load timings ("Module M load on device D took T ms (compiled)")
+    and passes every message on to the logger it replaces."""
+
+    def __init__(self, inner):
+        self.inner, self.loads = inner, []
+
+    def info(self, message):
+        import re
+
+        m = re.search(r"Module (\S+) .*took ([0-9.]+) ms\s*\((compiled|cached)\)", message)
+        if m:
+            self.loads.append((m.group(1), m.group(3), float(m.group(2)) / 1e3))
+
+    def debug(self, message):
+        pass
+
+    def warning(self, message, category=None, stacklevel=1):
+        self.inner.warning(message, category, stacklevel + 1)
+
+    def error(self, message):
+        self.inner.error(message)
+
+
+@contextmanager
+def _module_loads():
+    """[(module, "compiled" | "cached", seconds)] of the Warp modules loaded inside the block: on a cold
+    kernel cache, the compile times."""
+    import warp as wp
+
+    log = _LoadLog(wp.get_logger())
+    level = wp.config.log_level
+    wp.set_logger(log)
+    wp.config.log_level = wp.LOG_INFO
+    try:
+        yield log.loads
+    finally:
+        wp.config.log_level = level
+        wp.set_logger(log.inner)
+
+
 CAPTURE_RENDER_RTOL = 1e-5  # the device render vs the float32 fused kernel: float32 sums in other orders
 CAPTURE_RENDER_ATOL = 1e-6  # of the image's largest value
 
@@ -229,7 +271,8 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     """Seconds for the whole capture plan's simulation on `device` (every photo of both views; no
     extrapolation), by stage, with the production code (twin.capture.runner.photos): pixel tracing, the
     render of every pattern, the sensor (exposure bracket and raw frames), the HDR merge, and the download
-    of the finished raw frames and HDR images to the host (files excluded). `output`: then also the real
+    of the finished raw frames and HDR images to the host (files excluded: `hemicube capture` then packs,
+    compresses, checksums and writes them). `output`: then also the real
     `hemicube capture` into that folder, files written, timed whole. A warm-up on two rows of a camera
     comes first (on a cold Warp cache it is the kernels' compilation).
 
@@ -243,12 +286,11 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     from twin.camera.imaging import render_device, render_reference, trace_pixels, trace_pixels_numpy
     from twin.camera.sensor import raw_frame, sensor_consts
     from twin.capture.plan import build_patterns, paper_plan
-    from twin.capture.runner import backends, photos
+    from twin.capture.runner import HostCopies, backends, photos
     from twin.materials.samples import load_sample
     from twin.optics.inputs import check_device
 
     from collections import defaultdict
-    from contextlib import contextmanager
     from dataclasses import replace
 
     device = check_device(device)
@@ -276,7 +318,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
         wp.synchronize_device(dev)
         seconds[name] += time.perf_counter() - t0
 
-    with stage("warmup"):  # every kernel once, on two rows
+    with stage("warmup"), _module_loads() as loads:  # every kernel once, on two rows
         cam0 = next(iter(rig.cameras))
         s = trace_pixels(rig, cam0, maps, device=device, rows=(0, 2))
         w = patterns.weights[[index["uniform"]] + ([index["bottom"]] if "bottom" in index else [])]
@@ -287,16 +329,20 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
         from twin.camera.hdr import merge_hdr_device
 
         merge_hdr_device(raws, [1e-3], rig.camera(cam0).sensor)
+    res["warp_modules_compiled"] = [m for m, how, _ in loads if how == "compiled"]
+    res["warp_compile_s"] = sum(t for _, how, t in loads if how == "compiled")
+    res["warp_module_load_s"] = sum(t for _, _, t in loads)
     with stage("trace"):
         sims = backends(rig, maps, "sim", seed, device)
         surfaces = {key: sims[key[0]].surfaces(key[1]) for key in need}
     res["rays"] = {f"{k}/{c}": int(s.kind.shape[0]) for (k, c), s in surfaces.items()}
     checked = None
+    host = HostCopies()
     for photo, raws, hdr, record in photos(rig, sims, patterns, plan, device, stage):
-        with stage("download"):
-            host = raws.numpy(), hdr["radiance"].numpy()
+        with stage("download"):  # what `hemicube capture` hands to its file writers
+            copies = host(0, raws, hdr["radiance"])
         if checked is None:
-            checked = photo, record, host
+            checked = photo, record, [c.copy() for c in copies]
     res["seconds"] = dict(seconds)
     res["total_s_files_excluded"] = sum(v for k, v in seconds.items() if k != "warmup")
 

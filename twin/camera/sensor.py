@@ -62,6 +62,7 @@ import numpy as np
 import warp as wp
 
 from twin.camera.bayer import cfa_index, cfa_table
+from twin.optics.inputs import _init
 from twin.rig.camera import SensorParams
 
 wp.set_module_options({"fast_math": False, "fuse_fp": False})
@@ -71,11 +72,6 @@ MU_MAX = 1.0e12  # electrons: cap on the mean before sampling
 ROW_STRIDE = wp.constant(32768)  # pixel_id = row * ROW_STRIDE + col
 MAX_WIDTH = 32768
 MAX_HEIGHT = (2**31 - 1) // MAX_WIDTH  # 65535 rows: pixel_id stays a positive int32
-
-
-def _init():
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    wp.init()
 
 
 # --- seeds ----------------------------------------------------------------------------------------

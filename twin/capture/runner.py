@@ -4,10 +4,16 @@ into a session folder (twin.capture.session), resuming a killed run there.
 `photos` is the capture itself: it renders every pending pattern of a camera in one pass, then takes each
 photo (meter, exposure bracket, raw frames, HDR merge) on the backend's device; a photo leaves the device
 only when `capture` writes its files. `hemicube bench capture` times the same generator.
+
+Files: a finished photo is copied to the host (`HostCopies`: on CUDA into reused page-locked buffers, the
+fast transfer) and handed to one of WRITERS threads (packing, EXR compression and checksums release the
+GIL), so the device takes the next photos while earlier ones are written.
 """
 from __future__ import annotations
 
 import hashlib
+import os
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import asdict
 from pathlib import Path
@@ -17,6 +23,33 @@ import numpy as np
 from twin.capture.plan import (BRACKET, BRACKET_RATIO, EXPOSURE_LIMITS_S, CaptureError, build_patterns, frame_id,
                                paper_plan)
 from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession
+
+WRITERS = max(1, min(8, os.cpu_count() or 1))
+
+
+class HostCopies:
+    """Host (numpy) copies of device arrays in numbered slots: on CUDA each slot is a page-locked buffer,
+    reused by the next copy into that slot (its previous contents must be consumed by then); CPU arrays are
+    copied plainly."""
+
+    def __init__(self):
+        self._pinned = {}
+
+    def __call__(self, slot: int, *arrays) -> list[np.ndarray]:
+        import warp as wp
+
+        out = []
+        for i, a in enumerate(arrays):
+            if not a.device.is_cuda:
+                out.append(a.numpy().copy())
+                continue
+            key = (slot, i, a.shape, a.dtype)
+            if key not in self._pinned:
+                self._pinned[key] = wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
+            wp.copy(self._pinned[key], a)
+            wp.synchronize_stream(wp.get_stream(a.device))
+            out.append(self._pinned[key].numpy())
+        return out
 
 
 def backends(rig, maps, backend: str, seed: int, device: str) -> dict:
@@ -92,9 +125,19 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
                 session.write_pixel_texel(c, sims["sample"].surfaces(cam).pixel_texel())
         todo = [p for p in plan if not session.photo_done(p)]
         bar = _progress(len(plan), len(plan) - len(todo), progress)
-        for photo, raws, hdr, record in photos(rig, sims, patterns, todo, device):
-            session.write_photo(photo, list(raws.numpy()), hdr["radiance"].numpy(), record)
-            bar.update(1)
+        host = HostCopies()
+        slots = [None] * (2 * WRITERS)  # a slot's buffers are reused once its photo is written
+        with ThreadPoolExecutor(WRITERS) as pool:
+            for n, (photo, raws, hdr, record) in enumerate(photos(rig, sims, patterns, todo, device)):
+                k = n % len(slots)
+                if slots[k] is not None:
+                    slots[k].result()
+                raws_h, rad_h = host(k, raws, hdr["radiance"])
+                slots[k] = pool.submit(session.write_photo, photo, list(raws_h), rad_h, record)
+                slots[k].add_done_callback(lambda f: bar.update(1))
+            for f in slots:
+                if f is not None:
+                    f.result()  # re-raises a writer's error
         bar.close()
     return session.dir
 
