@@ -1,7 +1,8 @@
 """`hemicube bench ...`: throughput figures as JSON, each with a same-run baseline.
 
 bench lumitexel: LED-BRDF evaluations per second (points x LEDs / second) of
-  * the Warp materialising kernel (lumitexels stored),
+  * the Warp materialising kernel (lumitexels stored), alone and followed by torch's projection onto the
+    patterns (twin.measurements' method="materialise"; cuBLAS on CUDA),
   * the Warp fused kernel (64-pattern measurements, lumitexels never stored),
   * the baseline: a plain batched-torch version of the same formula (Eq. 1 with the same GGX,
     Lambertian LEDs, no visibility; then an einsum with the patterns), eager and torch.compile'd.
@@ -167,6 +168,15 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     t_fused = _time(run_fused, sync, repeats)
 
     tdev = torch.device("cuda" if str(device).startswith("cuda") else "cpu")
+    wt = torch.as_tensor(w, device=tdev)
+
+    def run_mat_projected():
+        """twin.measurements(method="materialise") on CUDA: the lumitexels, then torch's (cuBLAS) projection"""
+        run_mat()
+        sync()  # Warp's stream is not torch's
+        return torch.einsum("klc,plc->pkc", wt, wp.to_torch(m))
+
+    t_mat_proj = _time(run_mat_projected, sync, repeats)
     T = {k: torch.as_tensor(v, dtype=torch.float32, device=tdev) for k, v in pts.items()}
 
     def led(a):
@@ -174,7 +184,6 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
 
     lumi_args = (led(rig.led_positions), led(rig.led_normals), led(rig.leds.intensity), led(rig.leds.profile[:, 0]),
                  led(rig.primary.centre))
-    wt = torch.as_tensor(w, device=tdev)
     chunk = max(1, min(P, int(2e8 // (L * 3 * 8))))  # bound the eager intermediates' memory
 
     def torch_fused(fn):
@@ -196,6 +205,7 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
         "warp_version": wp.__version__, "torch_version": torch.__version__,
         "warp_materialise_evals_per_s": P * L / t_mat, "warp_materialise_s": t_mat,
         "warp_fused_evals_per_s": P * L / t_fused, "warp_fused_s": t_fused,
+        "warp_materialise_projected_evals_per_s": P * L / t_mat_proj, "warp_materialise_projected_s": t_mat_proj,
     }
     tol = dict(rtol=LUMITEXEL_RTOL, atol=LUMITEXEL_ATOL)
     with torch.no_grad():
@@ -204,8 +214,7 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
         ref = run_eager().cpu().numpy()
         result["torch_eager_evals_per_s"] = P * L / t_eager
         result["torch_eager_s"] = t_eager
-        run_mat()
-        projected = torch.einsum("klc,plc->pkc", wt, wp.to_torch(m)).cpu().numpy()
+        projected = run_mat_projected().cpu().numpy()
         checks = [same_work("warp_fused_vs_torch_eager", out.numpy(), ref, **tol),
                   same_work("warp_materialise_projected_vs_torch_eager", projected, ref, **tol)]
         if compile_torch:
