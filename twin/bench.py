@@ -310,8 +310,10 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     patterns = build_patterns(rig)
     plan = paper_plan(rig, patterns)
     index = {n: k for k, n in enumerate(patterns.names)}
-    need = {(p.sample, p.camera): sorted({index[q.pattern] for q in plan if (q.sample, q.camera) == (p.sample, p.camera)})
-            for p in plan}
+    need = {}  # (scene, camera) -> the plan's pattern indices there
+    for p in plan:
+        need.setdefault((p.sample, p.camera), set()).add(index[p.pattern])
+    need = {key: sorted(ks) for key, ks in need.items()}
     dev = wp.get_device(device)
     res = {"benchmark": "capture", "rig": rig.name, "device": str(dev),
            "device_name": dev.name if dev.is_cuda else platform.processor() or "cpu", "sample": sample,
