@@ -1,9 +1,9 @@
 """Compare the raw frames of two captures of the same plan made on different machines (the CPU here, CUDA
 on a lent GPU), when only small files can travel between them.
 
-    python tools/raw_compare.py digest CAPTURE rows.npz          per frame, one 64-bit hash per row
-    python tools/raw_compare.py rows CAPTURE rows.npz diff.npz     this capture's rows whose hash differs
-    python tools/raw_compare.py report CAPTURE diff.npz            pixel statistics against CAPTURE (JSON)
+    python -m twin.capture.raw_compare digest CAPTURE rows.npz        per frame, one 64-bit hash per row
+    python -m twin.capture.raw_compare rows CAPTURE rows.npz diff.npz   this capture's rows whose hash differs
+    python -m twin.capture.raw_compare report CAPTURE diff.npz          pixel statistics against CAPTURE (JSON)
 
 `digest` runs where the first capture is, `rows` where the second is (its output holds only the rows that
 differ, so it stays small when the captures agree), `report` back where the first is.
@@ -21,10 +21,9 @@ def _frames(capture):
     from twin.capture.session import CaptureSession
 
     s = CaptureSession.open(capture)
-    for stem, rec in sorted(s.photos.items()):
-        k, c = int(stem[3:8]), int(stem[-2:])
-        for j, raw in enumerate(s.raw_frames(k, c)):
-            yield f"{stem}_e{j}", raw
+    for p in sorted({(p["index"], p["camera_index"]) for p in s.header["plan"]}):
+        for j, raw in enumerate(s.raw_frames(*p)):
+            yield f"photo{p[0]}_camera{p[1]}_exposure{j}", raw
 
 
 def _row_hashes(raw: np.ndarray) -> np.ndarray:
