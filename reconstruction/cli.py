@@ -41,8 +41,11 @@ def cmd_train(args) -> int:
 def cmd_bench(args) -> int:
     from .bench import bench_reconstruct
 
-    print(json.dumps(bench_reconstruct(args.rig, args.device, args.texels, args.network), indent=2))
-    return 0
+    from twin.bench import bench_exit
+
+    res = bench_reconstruct(args.rig, args.device, args.texels, args.network)
+    print(json.dumps(res, indent=2))
+    return bench_exit(res)
 
 
 def register(sub) -> None:

@@ -23,27 +23,20 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 @pytest.fixture(scope="module")
 def mini_uniform():
-    """The two uniform-light photos (k = 129) of a mini-rig capture of the ramps sample (seed 1), rendered,
-    exposed and merged as twin.capture.runner does (only these two photos, to stay fast), with the sidecars."""
-    from twin.capture import pattern_sets
-    from twin.capture.backends.sim import SimBackend
-    from twin.capture.plan import bracket_exposures
-    from twin.camera.hdr import merge_hdr
+    """The two uniform-light photos (k = 129) of a mini-rig capture of the ramps sample (seed 1), taken by
+    twin.capture.runner's photo loop (only these two photos, to stay fast), with the sidecars."""
+    from twin.capture.plan import build_patterns, paper_plan
+    from twin.capture.runner import open_backends, photos
     from twin.materials.samples import load_sample
 
     rig = twin.load_rig("mini")
-    sim = SimBackend(rig, load_sample("ramps", resolution=128), seed=1)
-    uniform = pattern_sets.uniform(rig)
-    photos, truth = {}, {}
-    for cam in ("primary", "secondary"):
-        sim.prepare(cam, uniform)
-        sim.show(uniform.levels[0])
-        sensor = rig.camera(cam).sensor
-        exposures = bracket_exposures(sim.meter(cam), sensor)
-        raws = [sim.grab(cam, t, j) for j, t in enumerate(exposures)]
-        photos[cam] = merge_hdr(raws, exposures, sensor).radiance
-        truth[cam] = sim.surfaces(cam).pixel_texel().astype(np.float32)
-    return rig, photos, truth
+    patterns = build_patterns(rig)
+    todo = [p for p in paper_plan(rig, patterns) if p.pattern == "uniform"]
+    with open_backends(rig, load_sample("ramps", resolution=128), "sim", 1, "cpu") as sims:
+        shots = {photo.camera: hdr["radiance"].numpy() for photo, _, hdr, _ in photos(rig, sims, patterns, todo,
+                                                                                      "cpu")}
+        truth = {cam: sims["sample"].surfaces(cam).pixel_texel().astype(np.float32) for cam in shots}
+    return rig, shots, truth
 
 
 def _align(mini_uniform, **kw):

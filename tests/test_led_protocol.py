@@ -203,7 +203,7 @@ def test_led_link_benchmark_runs(tmp_path):
     """`hemicube bench led-link`, in miniature: its own checks hold (docs/reliability.md has the real run)."""
     from twin.capture.reliability import bench_led_link
 
-    res = bench_led_link(uploads=12, leds=LEDS, rate=0.05, flip=1e-4, kinds=("corrupt", "stuck"), link="socket",
+    res = bench_led_link(uploads=20, leds=LEDS, rate=0.05, flip=5e-4, kinds=("corrupt", "stuck"), link="socket",
                          workdir=tmp_path)
     assert res["all_good"] and len(res["runs"]) == 3
     assert all(r["faults_injected"] for r in res["runs"])

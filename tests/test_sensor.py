@@ -15,7 +15,7 @@ import pytest
 
 from twin.camera.bayer import cfa_index
 from twin.rig.camera import Camera, SensorParams
-from twin.camera.sensor import (GAUSS_LAMBDA, apply_crosstalk, apply_optics, apply_vignetting, effective_gain,
+from twin.camera.sensor import (POISSON_INVERSION_MAX, apply_crosstalk, apply_optics, apply_vignetting, effective_gain,
                          expected_dn, fixed_pattern, saturation_radiance, simulate_raw, vignetting_factor)
 
 S = SensorParams()  # IMX540-like defaults: 12 bit, RG, 2.4 e/DN, FW 9800 e, read 2.3 e, black 16 DN
@@ -44,11 +44,12 @@ def model(sensor, mu_e, t=T, gain_db=0.0):
 # --- statistics -------------------------------------------------------------------------------------
 @pytest.mark.parametrize("sensor, level_e", [
     (S, 0.0),  # dark frame: black level + dark signal
-    (S, 3.0),  # Poisson by multiplication (lambda < 10)
-    (S, 800.0),  # Poisson, transformed rejection
+    (S, 3.0),  # Poisson by exact inversion
+    (S, 0.95 * POISSON_INVERSION_MAX),  # both sides of the switch to the Cornish-Fisher quantile
+    (S, 1.05 * POISSON_INVERSION_MAX),
+    (S, 800.0),
     (S, 6000.0),
-    # a deep-well 16-bit sensor to reach both sides of the Gaussian switch at 1e4 electrons
-    (SensorParams(bit_depth=16, gain_e_per_dn=8.0, full_well_e=3e5, black_level_dn=200.0), 0.95 * GAUSS_LAMBDA),
+    # a deep-well 16-bit sensor for large counts
     (SensorParams(bit_depth=16, gain_e_per_dn=8.0, full_well_e=3e5, black_level_dn=200.0), 5e4),
 ])
 def test_flat_field_mean_and_photon_transfer_variance(sensor, level_e):
@@ -125,6 +126,94 @@ def test_cfa_colour_assignment(pattern):
         assert raw[idx == c].mean() == pytest.approx(expected_dn(rad, sensor, T)[idx == c].mean(), rel=0.02)
     if pattern == "RG":
         assert idx[:2, :2].tolist() == [[0, 1], [1, 2]]  # R at (0,0), G at (0,1) and (1,0), B at (1,1)
+
+
+# --- the inverse-CDF variates against scipy (the oracle) ---------------------------------------------
+import warp as wp  # noqa: E402
+
+from twin.camera import sensor as _sensor  # noqa: E402
+
+
+@wp.kernel
+def _quantiles(mu: wp.array(dtype=wp.float64), u: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.float64),
+               n: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    z[i] = _sensor.normal_quantile(u[i])
+    n[i] = _sensor.poisson_quantile(mu[i], u[i])
+
+
+def _q(mu, u):
+    mu, u = np.broadcast_arrays(np.asarray(mu, np.float64), np.asarray(u, np.float64))
+    z, n = wp.zeros(u.size, dtype=wp.float64), wp.zeros(u.size, dtype=wp.float64)
+    wp.launch(_quantiles, dim=u.size, inputs=[wp.array(mu.ravel(), dtype=wp.float64),
+                                              wp.array(u.ravel(), dtype=wp.float64)], outputs=[z, n])
+    return z.numpy(), n.numpy()
+
+
+def test_normal_quantile_is_as241():
+    from scipy.special import ndtri
+
+    u = np.concatenate([np.linspace(1e-9, 1 - 1e-9, 20001), 10.0 ** -np.arange(1, 17), 1 - 10.0 ** -np.arange(1, 16)])
+    z, _ = _q(1.0, u)
+    ref = ndtri(u)
+    assert np.max(np.abs(z - ref) / np.maximum(np.abs(ref), 1e-3)) < 1e-14
+
+
+@pytest.mark.parametrize("mu", [0.3, 5.0, 30.0, 63.9, 64.0, 200.0, 1e4, 1e7])
+def test_poisson_quantile_against_scipy(mu):
+    """The shot-noise quantile: the exact Poisson quantile below the switch, the skew-corrected Gaussian one
+    above it (at most 1 count away, in < 1e-3 of draws); moments and a chi-square against
+    scipy.stats.poisson on 2e5 seeded uniforms."""
+    from scipy import stats
+
+    rng = np.random.default_rng(int(mu * 10))
+    N = 200_000
+    u = (np.floor(rng.uniform(0, 2**52, N)) + 0.5) / 2**52  # the kernel's uniform grid
+    _, n = _q(mu, u)
+    ks = np.arange(stats.poisson.ppf(1e-12, mu), stats.poisson.ppf(1 - 1e-12, mu) + 1)
+    cdf_k = stats.poisson.cdf(ks, mu)
+    exact = ks[np.minimum(np.searchsorted(cdf_k, u), ks.size - 1)]  # the smallest k with cdf(k) >= u
+    miss = np.mean(n != exact)
+    assert np.max(np.abs(n - exact)) <= 1
+    assert miss == 0 if mu < POISSON_INVERSION_MAX else miss < 1e-3
+    # moments: within 4 standard errors (Var of the sample variance: (mu + 2 mu^2) / N for a Poisson)
+    assert abs(n.mean() - mu) < 4 * np.sqrt(mu / N)
+    assert abs(n.var() - mu) < 4 * np.sqrt((mu + 2 * mu * mu) / N)
+    assert abs(stats.skew(n) - 1 / np.sqrt(mu)) < 4 * np.sqrt(6 / N)
+    # chi-square over bins of >= 5 expected draws
+    edges, last = [], 0.0  # bin starts: each bin holds >= 5 expected draws
+    for k, c in zip(ks[1:], cdf_k[:-1]):
+        if c - last >= 5 / N:
+            edges.append(k)
+            last = c
+    cdf = stats.poisson.cdf(np.array(edges) - 1, mu)
+    expected = np.diff(np.concatenate([[0.0], cdf, [1.0]])) * N
+    observed = np.bincount(np.searchsorted(edges, n, side="right"), minlength=len(expected))
+    chi2 = np.sum((observed - expected) ** 2 / expected)
+    assert stats.chi2.sf(chi2, len(expected) - 1) > 1e-3
+
+
+def test_poisson_quantile_is_monotone_in_the_mean():
+    """For fixed draws the count never decreases as the mean grows, across the switch too."""
+    mu = np.linspace(40.0, 90.0, 5001)
+    for u in (1e-6, 0.02, 0.3, 0.5, 0.77, 0.999, 1 - 1e-9):
+        _, n = _q(mu, u)
+        assert np.all(np.diff(n) >= 0), u
+
+
+def test_a_few_ulps_of_the_mean_move_a_pixel_by_at_most_1_dn():
+    """The CPU vs CUDA contract: a radiance that differs in its last bits (another device's rounding)
+    changes no raw value by more than 1 DN, and few of them at all."""
+    rng = np.random.default_rng(11)
+    rad = (rng.uniform(0, 1.2, (256, 256, 3)) ** 3 * 3 * saturation_radiance(S, T)).astype(np.float32)
+    base = sim(rad, seed=5, frame=9).astype(np.int32)
+    for ulps in (1, 2, 4):
+        moved = rad.copy()
+        for _ in range(ulps):
+            moved = np.nextafter(moved, np.where(rng.uniform(size=rad.shape) < 0.5, 0, np.inf).astype(np.float32))
+        d = np.abs(sim(moved, seed=5, frame=9).astype(np.int32) - base)
+        assert d.max() <= 1, ulps
+        assert np.mean(d > 0) < 1e-3, (ulps, np.mean(d > 0))
 
 
 # --- fixed patterns -----------------------------------------------------------------------------------

@@ -1,18 +1,24 @@
 """`hemicube bench ...`: throughput figures as JSON, each with a same-run baseline.
 
 bench lumitexel: LED-BRDF evaluations per second (points x LEDs / second) of
-  * the Warp materialising kernel (lumitexels stored),
+  * the Warp materialising kernel (lumitexels stored), alone and followed by torch's projection onto the
+    patterns (twin.measurements' method="materialise"; cuBLAS on CUDA),
   * the Warp fused kernel (64-pattern measurements, lumitexels never stored),
   * the baseline: a plain batched-torch version of the same formula (Eq. 1 with the same GGX,
     Lambertian LEDs, no visibility; then an einsum with the patterns), eager and torch.compile'd.
-The Warp kernels run with visibility off so both sides compute the same thing; the JSON reports the
-largest relative difference between Warp and the torch baseline as a cross-check.
+The Warp kernels run with visibility off so both sides compute the same thing.
+
+Every benchmark checks that its same-run baseline computes the same thing as the measured path
+(`same_work`: elementwise |got - ref| <= rtol |ref| + atol max|ref|, tolerances stated in the JSON) and
+reports "passed"; the command exits non-zero when a check fails, so a drifted baseline cannot go unnoticed.
 """
 from __future__ import annotations
 
 import math
 import platform
 import time
+from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 
@@ -30,8 +36,48 @@ def random_points(P: int, seed: int = 0, half_size: float = 75.0, plane_z: float
                 alpha_x=np.exp(rng.uniform(la, lb, P)), alpha_y=np.exp(rng.uniform(la, lb, P)))
 
 
-def torch_lumitexel(pos, n, t, rd, rs, ax, ay, lpos, lnrm, cam):
-    """Plain batched torch Eq. 1 (physical convention, Lambertian LEDs, V = 1): (P, L, 3)."""
+def same_work(name: str, got, ref, *, rtol: float, atol: float = 0.0) -> dict:
+    """Whether `got` computes what `ref` does: every element within rtol |ref| + atol max|ref| (and finite).
+    The record names the check, its tolerances, the largest relative difference and the worst element's
+    share of its bound (<= 1 passes)."""
+    got = np.asarray(got, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    rec = {"check": name, "rtol": rtol, "atol_of_max": atol}
+    if got.shape != ref.shape:
+        return {**rec, "passed": False, "error": f"shape {got.shape} vs {ref.shape}"}
+    scale = float(np.abs(ref).max()) if ref.size else 0.0
+    err = np.abs(got - ref)
+    bound = rtol * np.abs(ref) + atol * scale
+    finite = bool(np.all(np.isfinite(got)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(err == 0, 0.0, err / bound)
+        rel = np.where(err == 0, 0.0, err / np.abs(ref))
+    worst = float(share.max()) if share.size else 0.0
+    return {**rec, "max_rel_diff": float(rel.max()) if rel.size else 0.0, "worst_share_of_bound": worst,
+            "passed": finite and worst <= 1.0}
+
+
+def finish_checks(result: dict, checks: list[dict]) -> dict:
+    result["checks"] = checks
+    result["passed"] = all(c["passed"] for c in checks)
+    return result
+
+
+def bench_exit(res: dict) -> int:
+    """A bench command's exit code: 1, naming the failed checks on stderr, when its baseline did not compute
+    the same thing (or no check ran)."""
+    import sys
+
+    bad = [c["check"] for c in res.get("checks", []) if not c["passed"]]
+    if bad or not res.get("passed", False):
+        print(f"hemicube: error: the same-work check failed: {bad or 'no checks ran'}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def torch_lumitexel(pos, n, t, rd, rs, ax, ay, lpos, lnrm, lint, lexp, cam):
+    """Plain batched torch Eq. 1 (physical convention, cosine-power LED profile A = cos^p with the rig's
+    intensities I_l, V = 1): (P, L, 3)."""
     import torch
 
     d = lpos[None] - pos[:, None]  # mm
@@ -58,9 +104,9 @@ def torch_lumitexel(pos, n, t, rd, rs, ax, ay, lpos, lnrm, cam):
     fs = D * F * G / (4 * ci * co)
     f = rd[:, None] / math.pi + rs[:, None] * fs[..., None]
     cos_l = -(wi * lnrm[None]).sum(-1)
-    geo = ci.clamp(min=0) * cos_l.clamp(min=0) / (r2 * 1e-6)
+    geo = ci.clamp(min=0) * cos_l.clamp(min=0) ** lexp[None] / (r2 * 1e-6)
     valid = (ci > 0) & (co > 0) & (cos_l > 0)
-    return torch.where(valid[..., None], f * geo[..., None], torch.zeros_like(f))
+    return torch.where(valid[..., None], f * geo[..., None] * lint[None], torch.zeros_like(f))
 
 
 def _time(fn, sync, repeats):
@@ -75,6 +121,10 @@ def _time(fn, sync, repeats):
     return best
 
 
+LUMITEXEL_RTOL = 1e-4  # float32 sums of L non-negative terms in different orders: ~sqrt(L) * 2^-24
+LUMITEXEL_ATOL = 1e-6  # of the largest value: terms far below it carry float32 evaluation noise only
+
+
 def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patterns=64, repeats=5,
                     compile_torch=True):
     import torch
@@ -82,12 +132,16 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
 
     import twin
     from twin.optics import lumitexel as K
+    from twin.optics.emitter import PROFILE_COSINE, PROFILE_MODES
     from twin.optics.inputs import CONVENTIONS, _device_inputs, _led_inputs, make_options
     from twin.optics.fused import fused_measurements
-    
+
     from dataclasses import replace
 
     rig = twin.load_rig(rig_name)
+    if PROFILE_MODES[rig.led_profile] != PROFILE_COSINE:
+        raise ValueError(f"bench lumitexel's torch baseline models cosine-power LED profiles only; rig "
+                         f"{rig.name!r} has {rig.led_profile!r}")
     # Upper LEDs only: the plain formula has no notion of light arriving through the acrylic from below
     # (a tilted normal would "see" a bottom LED), and the lumitexel of paper §6 is the 12,288 upper LEDs.
     upper = np.flatnonzero(~rig.is_bottom)
@@ -114,11 +168,22 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     t_fused = _time(run_fused, sync, repeats)
 
     tdev = torch.device("cuda" if str(device).startswith("cuda") else "cpu")
-    T = {k: torch.as_tensor(v, dtype=torch.float32, device=tdev) for k, v in pts.items()}
-    lpos = torch.tensor(rig.led_positions, dtype=torch.float32, device=tdev)
-    lnrm = torch.tensor(rig.led_normals, dtype=torch.float32, device=tdev)
-    camt = torch.as_tensor(rig.primary.centre, dtype=torch.float32, device=tdev)
     wt = torch.as_tensor(w, device=tdev)
+
+    def run_mat_projected():
+        """twin.measurements(method="materialise") on CUDA: the lumitexels, then torch's (cuBLAS) projection"""
+        run_mat()
+        sync()  # Warp's stream is not torch's
+        return torch.einsum("klc,plc->pkc", wt, wp.to_torch(m))
+
+    t_mat_proj = _time(run_mat_projected, sync, repeats)
+    T = {k: torch.as_tensor(v, dtype=torch.float32, device=tdev) for k, v in pts.items()}
+
+    def led(a):
+        return torch.tensor(np.asarray(a, np.float32), device=tdev)
+
+    lumi_args = (led(rig.led_positions), led(rig.led_normals), led(rig.leds.intensity), led(rig.leds.profile[:, 0]),
+                 led(rig.primary.centre))
     chunk = max(1, min(P, int(2e8 // (L * 3 * 8))))  # bound the eager intermediates' memory
 
     def torch_fused(fn):
@@ -127,7 +192,7 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
             for i in range(0, P, chunk):
                 s = slice(i, i + chunk)
                 lum = fn(T["position"][s], T["normal"][s], T["tangent"][s], T["rho_d"][s], T["rho_s"][s],
-                         T["alpha_x"][s], T["alpha_y"][s], lpos, lnrm, camt)
+                         T["alpha_x"][s], T["alpha_y"][s], *lumi_args)
                 outs.append(torch.einsum("klc,plc->pkc", wt, lum))
             return torch.cat(outs)
         return run
@@ -140,93 +205,182 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
         "warp_version": wp.__version__, "torch_version": torch.__version__,
         "warp_materialise_evals_per_s": P * L / t_mat, "warp_materialise_s": t_mat,
         "warp_fused_evals_per_s": P * L / t_fused, "warp_fused_s": t_fused,
+        "warp_materialise_projected_evals_per_s": P * L / t_mat_proj, "warp_materialise_projected_s": t_mat_proj,
     }
+    tol = dict(rtol=LUMITEXEL_RTOL, atol=LUMITEXEL_ATOL)
     with torch.no_grad():
         run_eager = torch_fused(torch_lumitexel)
         t_eager = _time(run_eager, tsync, max(1, repeats // 2))
         ref = run_eager().cpu().numpy()
         result["torch_eager_evals_per_s"] = P * L / t_eager
         result["torch_eager_s"] = t_eager
-        got = out.numpy()
-        result["max_rel_diff_warp_vs_torch"] = float(np.abs(got - ref).max() / np.abs(ref).max())
+        projected = run_mat_projected().cpu().numpy()
+        checks = [same_work("warp_fused_vs_torch_eager", out.numpy(), ref, **tol),
+                  same_work("warp_materialise_projected_vs_torch_eager", projected, ref, **tol)]
         if compile_torch:
-            compiled = torch.compile(torch_lumitexel, dynamic=False)
-            t_comp = _time(torch_fused(compiled), tsync, max(1, repeats // 2))
+            run_comp = torch_fused(torch.compile(torch_lumitexel, dynamic=False))
+            t_comp = _time(run_comp, tsync, max(1, repeats // 2))
             result["torch_compile_evals_per_s"] = P * L / t_comp
             result["torch_compile_s"] = t_comp
+            checks.append(same_work("torch_compile_vs_torch_eager", run_comp().cpu().numpy(), ref, **tol))
     base = result.get("torch_compile_evals_per_s", result["torch_eager_evals_per_s"])
     result["baseline"] = "torch_compile" if "torch_compile_evals_per_s" in result else "torch_eager"
     result["fused_speedup_vs_baseline"] = result["warp_fused_evals_per_s"] / base
     result["materialise_speedup_vs_baseline"] = result["warp_materialise_evals_per_s"] / base
-    return result
+    return finish_checks(result, checks)
 
 
-def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, hdr_photos=4, seed=0):
-    """Seconds for the capture plan's simulation (both views, every photo), by stage: pixel tracing,
-    radiance of every pattern (fused kernel, and the unfused baseline: materialised lumitexels per chunk
-    of rays, then a product with the patterns), sensor simulation of every raw frame, and the HDR merge
-    (timed on `hdr_photos` photos; the plan total is extrapolated from them and labelled so). File
-    writing is excluded."""
+class _LoadLog:
+    """A Warp logger that keeps the module-load timings ("Module M load on device D took T ms (compiled)")
+    and passes every message on to the logger it replaces."""
+
+    def __init__(self, inner):
+        self.inner, self.loads = inner, []
+
+    def info(self, message):
+        import re
+
+        m = re.search(r"Module (\S+) .*took ([0-9.]+) ms\s*\((compiled|cached)\)", message)
+        if m:
+            self.loads.append((m.group(1), m.group(3), float(m.group(2)) / 1e3))
+
+    def debug(self, message):
+        pass
+
+    def warning(self, message, category=None, stacklevel=1):
+        self.inner.warning(message, category, stacklevel + 1)
+
+    def error(self, message):
+        self.inner.error(message)
+
+
+@contextmanager
+def _module_loads():
+    """[(module, "compiled" | "cached", seconds)] of the Warp modules loaded inside the block: on a cold
+    kernel cache, the compile times."""
+    import warp as wp
+
+    log = _LoadLog(wp.get_logger())
+    level = wp.config.log_level
+    wp.set_logger(log)
+    wp.config.log_level = wp.LOG_INFO
+    try:
+        yield log.loads
+    finally:
+        wp.config.log_level = level
+        wp.set_logger(log.inner)
+
+
+CAPTURE_RENDER_RTOL = 1e-5  # the device render vs the float32 fused kernel: float32 sums in other orders
+CAPTURE_RENDER_ATOL = 1e-6  # of the image's largest value
+
+
+def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, seed=0, scale=1.0,
+                  check_rows=8, output=None):
+    """Seconds for the whole capture plan's simulation on `device` (every photo of both views; no
+    extrapolation), by stage, with the production code (twin.capture.runner.photos): pixel tracing, the
+    render of every pattern, the sensor (exposure bracket and raw frames), the HDR merge, and the download
+    of the finished raw frames and HDR images to the host (files excluded: `hemicube capture` then packs,
+    compresses, checksums and writes them). `output`: then also the real
+    `hemicube capture` into that folder, files written, timed whole. A warm-up on two rows of a camera
+    comes first (on a cold Warp cache it is the kernels' compilation).
+
+    Same work: on `check_rows` rows of every traced view, the trace against the numpy trace, and the render
+    of every pattern against the public forward model's fused float32 kernel with numpy finishing
+    (twin.camera.imaging's oracles); the first photo's HDR merge against the numpy merge."""
     import warp as wp
 
     import twin
-    from twin.capture.plan import BRACKET, bracket_exposures, build_patterns, frame_id, paper_plan
-    from twin.camera.hdr import merge_hdr
-    from twin.camera.imaging import render, trace_pixels
+    from twin.camera.hdr import merge_hdr_numpy
+    from twin.camera.imaging import render_device, render_reference, trace_pixels, trace_pixels_numpy
+    from twin.camera.sensor import raw_frame, sensor_consts
+    from twin.capture.plan import build_patterns, paper_plan
+    from twin.capture.runner import HostCopies, open_backends, photos
     from twin.materials.samples import load_sample
-    from twin.camera.sensor import simulate_raw
+    from twin.optics.inputs import check_device
 
-    from twin.optics.inputs import _init
+    from collections import defaultdict
+    from dataclasses import replace
 
-    _init()  # quiet: the JSON must be the only output
+    device = check_device(device)
     rig = twin.load_rig(rig_name)
+    if scale != 1.0:
+        rig = replace(rig, cameras={n: c.resized(scale) for n, c in rig.cameras.items()})
     maps = load_sample(sample, resolution=resolution)
     patterns = build_patterns(rig)
     plan = paper_plan(rig, patterns)
     index = {n: k for k, n in enumerate(patterns.names)}
-    sync = (lambda: wp.synchronize_device(device)) if str(device).startswith("cuda") else (lambda: None)
-    res = {"benchmark": "capture", "rig": rig_name, "device": device, "sample": sample,
-           "sample_resolution": resolution, "photos": len(plan), "raw_frames": len(plan) * BRACKET,
+    need = {}  # (scene, camera) -> the plan's pattern indices there
+    for p in plan:
+        need.setdefault((p.sample, p.camera), set()).add(index[p.pattern])
+    need = {key: sorted(ks) for key, ks in need.items()}
+    dev = wp.get_device(device)
+    res = {"benchmark": "capture", "rig": rig.name, "device": str(dev),
+           "device_name": dev.name if dev.is_cuda else platform.processor() or "cpu", "sample": sample,
+           "sample_resolution": resolution, "camera_scale": scale, "photos": len(plan), "warp_version": wp.__version__,
            "cameras": {n: [c.width, c.height] for n, c in rig.cameras.items()}}
-    t0 = time.perf_counter()
-    surf = {(kind, cam): trace_pixels(rig, cam, maps if kind == "sample" else None)
-            for kind in ("sample", "empty") for cam in rig.cameras
-            if any(p.camera == cam and p.sample == kind for p in plan)}
-    res["trace_s"] = time.perf_counter() - t0
-    res["rays"] = {f"{k}/{c}": int(s.kind.size) for (k, c), s in surf.items()}
-    images = {}
-    for method, chunk in (("fused", 1 << 20), ("materialise", 1 << 15)):
-        sync()
+    seconds = defaultdict(float)
+
+    @contextmanager
+    def stage(name):
+        wp.synchronize_device(dev)
         t0 = time.perf_counter()
-        evals = 0
-        for (kind, cam), s in surf.items():
-            need = sorted({index[p.pattern] for p in plan if p.camera == cam and p.sample == kind})
-            img = render(rig, cam, s, patterns.weights[need], device=device, chunk=chunk, method=method)
-            evals += int((s.kind != 0).sum()) * rig.num_leds
-            if method == "fused":
-                images[(kind, cam)] = dict(zip(need, img))
-        sync()
-        res[f"render_{method}_s"] = time.perf_counter() - t0
-    res["render_led_evaluations"] = evals
-    res["render_speedup_fused_vs_unfused"] = res["render_materialise_s"] / res["render_fused_s"]
-    t_sensor = t_hdr = 0.0
-    merged = 0
-    for photo in plan:
-        img = images[(photo.sample, photo.camera)][index[photo.pattern]]
-        cam = rig.camera(photo.camera)
-        exposures = bracket_exposures(float(img.max()), cam.sensor)
+        yield
+        wp.synchronize_device(dev)
+        seconds[name] += time.perf_counter() - t0
+
+    with stage("warmup"), _module_loads() as loads:  # every kernel once, on two rows
+        cam0 = next(iter(rig.cameras))
+        s = trace_pixels(rig, cam0, maps, device=device, rows=(0, 2))
+        w = patterns.weights[[index["uniform"]] + ([index["bottom"]] if "bottom" in index else [])]
+        img = render_device(rig, cam0, s, w, device=device)
+        raws = wp.empty((1, 2, rig.camera(cam0).width), dtype=wp.uint16, device=dev)
+        raw_frame(img[0], sensor_consts(rig.camera(cam0).sensor, exposure_s=1e-3, seed=0, frame=0,
+                                        camera_key="warmup"), raws[0])
+        from twin.camera.hdr import merge_hdr_device
+
+        merge_hdr_device(raws, [1e-3], rig.camera(cam0).sensor)
+    res["warp_modules_compiled"] = [m for m, how, _ in loads if how == "compiled"]
+    res["warp_compile_s"] = sum(t for _, how, t in loads if how == "compiled")
+    res["warp_module_load_s"] = sum(t for _, _, t in loads)
+    checked = None
+    host = HostCopies()
+    with open_backends(rig, maps, "sim", seed, device) as sims:
+        with stage("trace"):
+            surfaces = {key: sims[key[0]].surfaces(key[1]) for key in need}
+        for photo, raws, hdr, record in photos(rig, sims, patterns, plan, device, stage):
+            with stage("download"):  # what `hemicube capture` hands to its file writers
+                copies = host(0, raws, hdr["radiance"])
+            if checked is None:
+                checked = photo, record, [c.copy() for c in copies]
+    res["rays"] = {f"{k}/{c}": int(s.kind.shape[0]) for (k, c), s in surfaces.items()}
+    res["seconds"] = dict(seconds)
+    res["total_s_files_excluded"] = sum(v for k, v in seconds.items() if k != "warmup")
+
+    checks = []
+    for (kind, cam), surf in surfaces.items():
+        H = rig.camera(cam).height
+        rows = (max(0, H // 2 - check_rows // 2), min(H, H // 2 - check_rows // 2 + check_rows))
+        m = maps if kind == "sample" else None
+        ours = trace_pixels(rig, cam, m, device=device, rows=rows).host()
+        ref = trace_pixels_numpy(rig, cam, m, rows=np.arange(*rows))
+        checks.append(same_work(f"trace_kind_{kind}_{cam}", ours.kind, ref.kind, rtol=0.0))
+        for f in ("position", "normal", "rho_d", "alpha_x"):
+            checks.append(same_work(f"trace_{f}_{kind}_{cam}", getattr(ours, f), getattr(ref, f).astype(np.float32),
+                                    rtol=2.0 ** -23))  # float32 rounding of the numpy float64 values, 1 ulp
+        w = patterns.weights[need[(kind, cam)]]
+        checks.append(same_work(f"render_{kind}_{cam}", render_device(rig, cam, ours, w, device=device).numpy(),
+                                render_reference(rig, cam, ours, w, device=device), rtol=CAPTURE_RENDER_RTOL,
+                                atol=CAPTURE_RENDER_ATOL))
+    photo, record, (raws_host, rad_host) = checked
+    ref = merge_hdr_numpy(list(raws_host), record["exposures_s"], rig.camera(photo.camera).sensor)
+    checks.append(same_work("hdr_merge_first_photo", rad_host, ref.radiance, rtol=0.0))
+
+    if output is not None:
+        from twin.capture.runner import capture
+
         t0 = time.perf_counter()
-        raws = [simulate_raw(img, sensor=cam.sensor, exposure_s=t, seed=seed, frame=frame_id(photo, j),
-                             camera_key=photo.camera, device=device) for j, t in enumerate(exposures)]
-        t_sensor += time.perf_counter() - t0
-        if merged < hdr_photos:
-            t0 = time.perf_counter()
-            merge_hdr(raws, exposures, cam.sensor)
-            t_hdr += time.perf_counter() - t0
-            merged += 1
-    res["sensor_s"] = t_sensor
-    res["hdr_merge_s_per_photo"] = t_hdr / max(merged, 1)
-    res["hdr_merge_s_plan_extrapolated"] = res["hdr_merge_s_per_photo"] * len(plan)
-    res["total_s_fused"] = res["trace_s"] + res["render_fused_s"] + res["sensor_s"] + res["hdr_merge_s_plan_extrapolated"]
-    res["total_s_unfused_baseline"] = res["total_s_fused"] - res["render_fused_s"] + res["render_materialise_s"]
-    return res
+        capture(rig, sample, output, seed=seed, device=device, resolution=resolution, progress=False)
+        res["total_s_files_written"] = time.perf_counter() - t0
+        res["output_bytes"] = sum(f.stat().st_size for f in Path(output).rglob("*") if f.is_file())
+    return finish_checks(res, checks)

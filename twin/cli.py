@@ -142,7 +142,7 @@ def cmd_controller_info(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from twin.bench import bench_capture, bench_lumitexel
+    from twin.bench import bench_capture, bench_exit, bench_lumitexel
     from twin.capture import reliability
 
     if args.bench_command in ("led-link", "resume", "camera-faults"):
@@ -162,9 +162,10 @@ def cmd_bench(args) -> int:
         res = bench_lumitexel(args.rig, args.device, args.leds, args.points, args.patterns, args.repeats,
                               not args.no_compile)
     else:
-        res = bench_capture(args.rig, args.device, args.sample, args.resolution, args.hdr_photos)
+        res = bench_capture(args.rig, args.device, args.sample, args.resolution, args.seed, args.scale,
+                            output=args.output)
     print(json.dumps(res, indent=2))
-    return 0
+    return bench_exit(res)
 
 
 def _pattern_image_args(s) -> None:
@@ -278,8 +279,10 @@ def register_bench(bench) -> None:
     s.add_argument("--sample", default="ramps", help="built-in sample (default: %(default)s)")
     s.add_argument("--resolution", type=int, default=1024, help="texels per side of the sample's maps "
                    "(default: %(default)s)")
-    s.add_argument("--hdr-photos", type=int, default=4, help="photos whose HDR merge is timed "
-                   "(default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="the capture's seed (default: %(default)s)")
+    s.add_argument("--scale", type=float, default=1.0, help="resize the cameras by this factor, e.g. 0.5 for a "
+                   "quick run (default: %(default)s)")
+    s.add_argument("-o", "--output", help="also run `hemicube capture` into this folder, files written, and time it")
     s.set_defaults(func=cmd_bench)
 
     from twin.capture.backends.faults import FAULT_KINDS

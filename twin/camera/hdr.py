@@ -1,4 +1,4 @@
-"""Exposure brackets: choosing them and merging raw frames to linear radiance (numpy).
+"""Exposure brackets: choosing them and merging raw frames to linear radiance (Warp kernels; numpy oracle).
 
 `merge_hdr` inverts `twin.camera.sensor.simulate_raw` frame by frame and combines the frames with noise-optimal
 weights. The result is in the unit of simulate_raw's input radiance (the frame's electrons divided by
@@ -31,6 +31,12 @@ A photosite saturated in every frame gets the shortest exposure's clipped estima
 weight 0, and is flagged in `saturated_mask`; `clipped` flags each demosaiced colour value that depends
 on such a photosite.
 
+Where it runs: `merge_kernel` (per photosite, float64) and `demosaic_kernel` (per pixel, float64, then one
+rounding to float32) on the frames' device, CPU or CUDA, without contraction (no FMA), so both devices give
+the same bytes; `merge_hdr_device` keeps the result there (the capture's photos leave the device only as
+files), `merge_hdr` takes and returns numpy. `merge_hdr_numpy` is the numpy implementation this module had
+before: the kernels' oracle (tests/test_hdr.py) and the same-work baseline of `hemicube bench capture`.
+
 Known limitation (measured in tests/test_hdr.py): excluding a frame only when its own reading crosses
 the threshold truncates that frame's noise for photosites whose mean lies within ~2 sigma of the
 threshold, biasing them low by at most ~0.8 sigma of that frame (about 1% at full well) times its weight
@@ -42,12 +48,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
-from twin.camera.bayer import demosaic
+from twin.camera.bayer import cfa_table, demosaic
 from twin.rig.camera import SensorParams
 from twin.camera.sensor import dn_max, effective_gain, saturation_electrons
 
+wp.set_module_options({"fast_math": False, "fuse_fp": False})
+
 DEFAULT_MARGIN = 0.05  # frames above 95% of the saturation signal are excluded
+MAX_FRAMES = 16  # frames per merge (the plan's brackets have 3)
 
 
 @dataclass(frozen=True)
@@ -90,18 +100,175 @@ def frame_radiance(raw, exposure_s: float, sensor: SensorParams, gain_db: float 
     return e / (sensor.electrons_per_radiance_s * exposure_s)
 
 
-def merge_hdr(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.0,
-              margin: float = DEFAULT_MARGIN) -> HDRResult:
-    """Merge raw frames of one camera (uint16 (H, W) each, the same gain) taken at `exposures_s` into
-    linear radiance; see the module docstring."""
-    raws = list(raws)
+@wp.struct
+class MergeConsts:
+    cfa: wp.vec4i  # channel at (row % 2) * 2 + (col % 2)
+    frames: int
+    exposure: wp.types.vector(length=MAX_FRAMES, dtype=wp.float64)
+    shortest: int
+    black: wp.float64
+    g: wp.float64  # electrons per DN
+    dark: wp.float64  # electrons per second
+    ke: wp.float64  # electrons per radiance-second
+    threshold: wp.float64  # DN: at or above, the frame is saturated at this site
+    const_var: wp.float64  # read noise^2 + g^2 / 12
+
+
+@wp.func
+def _frame_radiance(dn: wp.float64, t: wp.float64, k: MergeConsts):
+    return ((dn - k.black) * k.g - k.dark * t) / (k.ke * t)
+
+
+@wp.kernel
+def merge_kernel(raw: wp.array3d(dtype=wp.uint16), k: MergeConsts, mosaic: wp.array2d(dtype=wp.float64),
+                 weights_sum: wp.array2d(dtype=wp.float32), used: wp.array2d(dtype=wp.uint8),
+                 saturated: wp.array2d(dtype=wp.uint8), saturated_count: wp.array(dtype=int)):
+    """One photosite: the pilot estimate from all valid frames, then the inverse-variance merge (module
+    docstring; the numpy twin is merge_hdr_numpy)."""
+    i, j = wp.tid()
+    zero = wp.float64(0.0)
+    e_sum = zero
+    kt_sum = zero
+    for f in range(k.frames):
+        r = wp.float64(raw[f, i, j])
+        if r < k.threshold:
+            t = k.exposure[f]
+            e_sum += (r - k.black) * k.g - k.dark * t
+            kt_sum += k.ke * t
+    L0 = zero
+    if kt_sum > zero:
+        L0 = wp.max(e_sum / kt_sum, zero)
+    num = zero
+    wsum = zero
+    n = int(0)
+    for f in range(k.frames):
+        r = wp.float64(raw[f, i, j])
+        if r < k.threshold:
+            t = k.exposure[f]
+            kt = k.ke * t
+            w = kt * kt / (L0 * kt + k.dark * t + k.const_var)
+            num += w * _frame_radiance(r, t, k)
+            wsum += w
+            n += 1
+    if n == 0:  # saturated in every frame: the shortest exposure's clipped estimate, a lower bound
+        mosaic[i, j] = _frame_radiance(wp.float64(raw[k.shortest, i, j]), k.exposure[k.shortest], k)
+        saturated[i, j] = wp.uint8(1)
+        wp.atomic_add(saturated_count, 0, 1)
+    else:
+        mosaic[i, j] = num / wsum
+        saturated[i, j] = wp.uint8(0)
+    weights_sum[i, j] = wp.float32(wsum)
+    used[i, j] = wp.uint8(n)
+
+
+@wp.func
+def _reflect(i: int, n: int):
+    """numpy's "reflect" padding by one: -1 -> 1, n -> n - 2."""
+    if i < 0:
+        return -i
+    if i > n - 1:
+        return 2 * (n - 1) - i
+    return i
+
+
+@wp.kernel
+def demosaic_kernel(mosaic: wp.array2d(dtype=wp.float64), saturated: wp.array2d(dtype=wp.uint8), cfa: wp.vec4i,
+                    rgb: wp.array2d(dtype=wp.vec3f), clipped: wp.array2d(dtype=wp.vec3ub)):
+    """Bilinear demosaicing of one pixel (twin.camera.bayer.demosaic's 3x3 kernels and reflected border, in
+    its order of summation) of the merged mosaic, and of the saturation mask (-> `clipped`)."""
+    i, j = wp.tid()
+    H = mosaic.shape[0]
+    W = mosaic.shape[1]
+    out = wp.vec3d()
+    clip = wp.vec3ub()
+    for c in range(3):
+        acc = wp.float64(0.0)
+        sat = wp.float64(0.0)
+        for di in range(3):
+            for dj in range(3):
+                # the kernels: green 1/4 [[0,1,0],[1,4,1],[0,1,0]], red and blue 1/4 [[1,2,1],[2,4,2],[1,2,1]]
+                wk = wp.float64(0.0)
+                if c == 1:
+                    if di == 1 and dj == 1:
+                        wk = wp.float64(1.0)
+                    elif di == 1 or dj == 1:
+                        wk = wp.float64(0.25)
+                else:
+                    if di == 1 and dj == 1:
+                        wk = wp.float64(1.0)
+                    elif di == 1 or dj == 1:
+                        wk = wp.float64(0.5)
+                    else:
+                        wk = wp.float64(0.25)
+                ii = _reflect(i + di - 1, H)
+                jj = _reflect(j + dj - 1, W)
+                if wk != wp.float64(0.0) and cfa[(ii % 2) * 2 + (jj % 2)] == c:
+                    acc += wk * mosaic[ii, jj]
+                    sat += wk * wp.float64(saturated[ii, jj])
+        out[c] = acc
+        if sat > wp.float64(0.0):
+            clip[c] = wp.uint8(1)
+    rgb[i, j] = wp.vec3f(out)
+    clipped[i, j] = clip
+
+
+def _merge_consts(ts: list[float], sensor: SensorParams, gain_db: float, margin: float) -> MergeConsts:
+    g = effective_gain(sensor, gain_db)
+    k = MergeConsts()
+    k.cfa = wp.vec4i(*[int(v) for v in cfa_table(sensor.bayer).ravel()])
+    k.frames = len(ts)
+    k.exposure = wp.types.vector(length=MAX_FRAMES, dtype=wp.float64)(*(ts + [1.0] * (MAX_FRAMES - len(ts))))
+    k.shortest = int(np.argsort(ts, kind="stable")[0])
+    k.black = float(sensor.black_level_dn)
+    k.g = float(g)
+    k.dark = float(sensor.dark_current_e_per_s)
+    k.ke = float(sensor.electrons_per_radiance_s)
+    k.threshold = float(saturation_threshold_dn(sensor, gain_db, margin))
+    k.const_var = float(sensor.read_noise_e ** 2 + g * g / 12.0)
+    return k
+
+
+def _check_exposures(n: int, exposures_s) -> list[float]:
     ts = [float(t) for t in exposures_s]
-    if not raws:
+    if n == 0:
         raise ValueError("merge_hdr needs at least one frame")
-    if len(raws) != len(ts):
-        raise ValueError(f"{len(raws)} frames but {len(ts)} exposures")
+    if n != len(ts):
+        raise ValueError(f"{n} frames but {len(ts)} exposures")
+    if n > MAX_FRAMES:
+        raise ValueError(f"merge_hdr takes at most {MAX_FRAMES} frames, got {n}")
     if not all(math.isfinite(t) and t > 0 for t in ts):
         raise ValueError(f"exposures must be positive and finite, got {ts}")
+    return ts
+
+
+def merge_hdr_device(raws: wp.array, exposures_s, sensor: SensorParams, gain_db: float = 0.0,
+                     margin: float = DEFAULT_MARGIN) -> dict:
+    """The merge on the frames' device: raws (n, H, W) uint16 Warp array -> Warp arrays there: "radiance"
+    (H, W) vec3f, "mosaic" (H, W) float64, "weights_sum" float32, "frames_used" uint8, "saturated" uint8,
+    "clipped" (H, W) vec3ub, and "saturated_count" (1,) int (sites saturated in every frame)."""
+    n, H, W = raws.shape
+    ts = _check_exposures(n, exposures_s)
+    if H < 2 or W < 2:
+        raise ValueError(f"frames must be at least 2x2 to demosaic, got {H}x{W}")
+    k = _merge_consts(ts, sensor, gain_db, margin)
+    dev = raws.device
+    out = {"mosaic": wp.empty((H, W), dtype=wp.float64, device=dev),
+           "weights_sum": wp.empty((H, W), dtype=wp.float32, device=dev),
+           "frames_used": wp.empty((H, W), dtype=wp.uint8, device=dev),
+           "saturated": wp.empty((H, W), dtype=wp.uint8, device=dev),
+           "saturated_count": wp.zeros(1, dtype=int, device=dev),
+           "radiance": wp.empty((H, W), dtype=wp.vec3f, device=dev),
+           "clipped": wp.empty((H, W), dtype=wp.vec3ub, device=dev)}
+    wp.launch(merge_kernel, dim=(H, W), inputs=[raws, k],
+              outputs=[out[f] for f in ("mosaic", "weights_sum", "frames_used", "saturated", "saturated_count")],
+              device=dev)
+    wp.launch(demosaic_kernel, dim=(H, W), inputs=[out["mosaic"], out["saturated"], k.cfa],
+              outputs=[out["radiance"], out["clipped"]], device=dev)
+    return out
+
+
+def _check_frames(raws) -> list[np.ndarray]:
+    raws = list(raws)
     shape = None
     for i, r in enumerate(raws):
         if not isinstance(r, np.ndarray) or r.dtype != np.uint16 or r.ndim != 2:
@@ -109,6 +276,31 @@ def merge_hdr(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.0,
         if shape is not None and r.shape != shape:
             raise ValueError(f"frame {i} has shape {r.shape}, frame 0 {shape}")
         shape = r.shape
+    return raws
+
+
+def merge_hdr(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.0,
+              margin: float = DEFAULT_MARGIN, device="cpu") -> HDRResult:
+    """Merge raw frames of one camera (uint16 (H, W) numpy arrays, the same gain) taken at `exposures_s` into
+    linear radiance; see the module docstring. Runs the kernels on `device`; numpy results."""
+    raws = _check_frames(raws)
+    _check_exposures(len(raws), exposures_s)
+    from twin.optics.inputs import _init
+
+    _init()
+    r = merge_hdr_device(wp.array(np.stack(raws), dtype=wp.uint16, device=device), exposures_s, sensor, gain_db,
+                         margin)
+    return HDRResult(radiance=r["radiance"].numpy(), saturated_mask=r["saturated"].numpy().astype(bool),
+                     weights_sum=r["weights_sum"].numpy(), mosaic=r["mosaic"].numpy().astype(np.float32),
+                     clipped=r["clipped"].numpy().astype(bool), frames_used=r["frames_used"].numpy())
+
+
+def merge_hdr_numpy(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.0,
+                    margin: float = DEFAULT_MARGIN) -> HDRResult:
+    """`merge_hdr` in numpy (the kernels' oracle and the capture bench's baseline)."""
+    raws = _check_frames(raws)
+    ts = _check_exposures(len(raws), exposures_s)
+    shape = raws[0].shape
     if shape[0] < 2 or shape[1] < 2:
         raise ValueError(f"frames must be at least 2x2 to demosaic, got {shape[0]}x{shape[1]}")
     g = effective_gain(sensor, gain_db)

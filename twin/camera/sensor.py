@@ -1,46 +1,57 @@
 """The camera sensor of the virtual capture: scene radiance at each pixel -> 12-bit raw digital numbers.
 
-`simulate_raw` runs one Warp thread per pixel (CPU here, CUDA on a GPU, the same kernel). For pixel
-(row i, col j) of a camera with parameters `twin.rig.camera.SensorParams`:
+`simulate_raw` (numpy in and out) and `raw_frame` (Warp arrays, no host round trip) run one Warp thread per
+pixel (CPU here, CUDA on a GPU, the same kernel). For pixel (row i, col j) of a camera with parameters
+`twin.rig.camera.SensorParams`:
 
 1. colour filter: channel c = CFA(sensor.bayer)[i % 2, j % 2] (`twin.camera.bayer`; RG: R at (0,0), G at
    (0,1) and (1,0), B at (1,1));
 2. mean photo-electrons   mu = L[c] * electrons_per_radiance_s * t * (1 + PRNU_ij) + dark_current * t;
-3. shot noise             n ~ Poisson(mu) (Warp's `wp.poisson`) for mu < GAUSS_LAMBDA, else
-                          round(N(mu, mu)) (see below);
-4. readout                e = n + DSNU_ij + N(0, read_noise_e);
+3. shot noise             n = F^-1(u1; mu), the Poisson quantile of a uniform draw u1 (see below);
+4. readout                e = n + DSNU_ij + read_noise_e * Phi^-1(u2);
 5. full well              e = min(e, full_well_e);
-6. ADC                    DN = clip(round(e / g + black_level_dn), 0, 2^bit_depth - 1),
+6. ADC                    DN = clip(floor(e / g + black_level_dn + 0.5), 0, 2^bit_depth - 1),
                           g = gain_e_per_dn * 10^(-gain_db / 20) electrons per DN.
+
+Every draw is an inverse-CDF transform of a uniform, so a pixel's value is a monotone, piecewise-constant
+function of its mean for fixed draws: a mean moved by a rounding error moves the shot-noise count by at
+most one electron (and only when the draw lies within that error of a quantile step), i.e. the DN by at most
+1. (A rejection sampler, used before, could flip an accept/reject decision on the last bit of the mean and
+give an unrelated draw, up to ~3 sigma away.) The Poisson quantile:
+
+* mu < POISSON_INVERSION_MAX (64): exact inversion, the smallest n with P(N <= n) >= u1, by summing the pmf
+  from n = 0 in float64 (at most mu + 12 sqrt(mu) + 12 terms);
+* above: the Cornish-Fisher expansion of the Poisson quantile with the lattice (Sheppard) correction,
+      n = floor(mu + sqrt(mu) z + (z^2 + 2) / 6 - (z^3 + 2 z) / (72 sqrt(mu))),  z = Phi^-1(u1),
+  whose skew term is exact to O(1/mu): measured against scipy.stats.poisson.ppf on 4e5 draws it returns the
+  exact quantile except in 3e-4 of draws at mu = 64, 2e-5 at 1e3 and 3e-6 at 1e4 (and then one count
+  away). tests/test_sensor.py checks mean, variance, skewness and a chi-square against scipy.stats.poisson.
+  mu is capped at MU_MAX = 1e12 electrons (anything that large saturates anyway).
+
+Phi^-1 is Wichura's AS 241 (PPND16, relative error ~1e-16) in float64, from a 52-bit uniform made of two
+32-bit draws, so the tails reach |z| = 8.2; it uses only log, sqrt and rational functions.
 
 Randomness uses Warp's counter-based generator only: every draw of a pixel comes from
 `wp.rand_init(seed32, pixel_id)` with pixel_id = i * 32768 + j (the pixel's position on the sensor,
 independent of the image size and of thread scheduling) and a 32-bit seed made on the host:
 
 * the per-capture noise (shot, read) from sha256(f"noise|{seed}|{frame}|{camera_key}");
-* the FIXED patterns PRNU_ij ~ N(0, prnu) (relative gain) and DSNU_ij ~ N(0, dsnu_e) (electrons) from
-  sha256(f"fpn|{camera_key}") only: the same for every seed and frame of a camera, different per camera
-  (`fixed_pattern` returns them).
+* the FIXED patterns PRNU_ij ~ N(0, prnu) (relative gain, clamped at -1) and DSNU_ij ~ N(0, dsnu_e)
+  (electrons) from sha256(f"fpn|{camera_key}") only: the same for every seed and frame of a camera,
+  different per camera (`fixed_pattern` returns them).
 
 Hashes are sha256 (first 8 bytes, folded to 32 bits because Warp seeds are 32-bit), never Python's
-`hash()`, so a given (seed, frame, camera_key, inputs) gives byte-identical output on every CPU run.
-CUDA runs the same kernel and formulas; differences come only from float rounding of `log`/`exp`/
-`sqrt`/`cos` in the last bit (this module is compiled without fast math). Measured on an H100 against
-this CPU kernel (512 x 768 frames, Warp 1.19): the fixed patterns agree to 1-2 ulp (1.2e-7 relative);
-raw frames are identical except for 0.07% of pixels (uniform 0-3x saturation), 0.04% (deep-well sensor,
-1e6 e) and 0.0005% (0-20 e). In those pixels an ulp difference flipped an accept/reject decision of the
-Poisson sampler, so they hold a different but identically distributed draw (up to ~3 sigma apart, e.g.
-141 DN at 9000 e). CPU runs on two different x86-64 machines were byte-identical.
+`hash()`, so a given (seed, frame, camera_key, inputs) gives byte-identical output on every run.
 
-Shot noise at large lambda: `wp.poisson` uses the PTRS transformed-rejection sampler for lambda >= 10
-(constant expected time) in float32. Measured on 2e6 draws per lambda: mean and variance correct to
-<0.1% for lambda <= 1e4, but its float32 log-probabilities degrade above: variance +0.7% at 1e5, +3% at
-1e6, -10% at 3e7 (and a uint32 result overflows beyond 4.3e9). Above GAUSS_LAMBDA = 1e4 electrons we
-therefore draw round(mu + sqrt(mu) * N(0, 1)), whose skewness error (1/sqrt(mu) <= 0.01) is negligible;
-mu is capped at 1e12 so that no input overflows (anything that large saturates anyway).
+CPU and CUDA: the arithmetic is float64, compiled without fast math and without floating-point contraction
+(no FMA fusion, which the two compilers would place differently), so +, -, *, / and sqrt round identically
+on both; only log and exp (libm vs CUDA's libdevice) may differ in the last bit, which moves a quantile
+step by ~1e-16 and so changes a count with probability ~1e-16 per draw. With the same float32 radiance the
+two devices give the same bytes; a radiance that differs by a few ulps changes a pixel by at most 1 DN.
 
-Vignetting and channel crosstalk act before the sensor and are applied by the caller in numpy
-(`apply_vignetting`, `apply_crosstalk`, or both from a `Camera` with `apply_optics`).
+Vignetting and channel crosstalk act before the sensor and are applied by the caller
+(`apply_vignetting`, `apply_crosstalk`, or both from a `Camera` with `apply_optics`; the capture's render
+applies them on the device, twin.camera.imaging).
 """
 from __future__ import annotations
 
@@ -51,20 +62,16 @@ import numpy as np
 import warp as wp
 
 from twin.camera.bayer import cfa_index, cfa_table
+from twin.optics.inputs import _init
 from twin.rig.camera import SensorParams
 
-wp.set_module_options({"fast_math": False})
+wp.set_module_options({"fast_math": False, "fuse_fp": False})
 
-GAUSS_LAMBDA = 1.0e4  # electrons: Poisson below, rounded Gaussian at and above
+POISSON_INVERSION_MAX = 64.0  # electrons: exact inversion below, the Cornish-Fisher quantile at and above
 MU_MAX = 1.0e12  # electrons: cap on the mean before sampling
 ROW_STRIDE = wp.constant(32768)  # pixel_id = row * ROW_STRIDE + col
-MAX_WIDTH = ROW_STRIDE
-MAX_HEIGHT = (2**31 - 1) // ROW_STRIDE  # 65535 rows: pixel_id stays a positive int32
-
-
-def _init():
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    wp.init()
+MAX_WIDTH = 32768
+MAX_HEIGHT = (2**31 - 1) // MAX_WIDTH  # 65535 rows: pixel_id stays a positive int32
 
 
 # --- seeds ----------------------------------------------------------------------------------------
@@ -83,58 +90,134 @@ def noise_seed(seed: int, frame: int, camera_key: str) -> int:
     return _seed32(f"noise|{int(seed)}|{int(frame)}|{camera_key}")
 
 
-# --- the kernel -----------------------------------------------------------------------------------
+# --- inverse-CDF variates (float64) -----------------------------------------------------------------
+vec8d = wp.types.vector(length=8, dtype=wp.float64)
+# Wichura, AS 241 (1988), PPND16: numerators (a, c, e) and denominators (b, d, f), lowest order first
+_AS241_A = wp.constant(vec8d(3.3871328727963666080e0, 1.3314166789178437745e+2, 1.9715909503065514427e+3,
+                             1.3731693765509461125e+4, 4.5921953931549871457e+4, 6.7265770927008700853e+4,
+                             3.3430575583588128105e+4, 2.5090809287301226727e+3))
+_AS241_B = wp.constant(vec8d(1.0, 4.2313330701600911252e+1, 6.8718700749205790830e+2, 5.3941960214247511077e+3,
+                             2.1213794301586595867e+4, 3.9307895800092710610e+4, 2.8729085735721942674e+4,
+                             5.2264952788528545610e+3))
+_AS241_C = wp.constant(vec8d(1.42343711074968357734e0, 4.63033784615654529590e0, 5.76949722146069140550e0,
+                             3.64784832476320460504e0, 1.27045825245236838258e0, 2.41780725177450611770e-1,
+                             2.27238449892691845833e-2, 7.74545014278341407640e-4))
+_AS241_D = wp.constant(vec8d(1.0, 2.05319162663775882187e0, 1.67638483018380384940e0, 6.89767334985100004550e-1,
+                             1.48103976427480074590e-1, 1.51986665636164571966e-2, 5.47593808499534494600e-4,
+                             1.05075007164441684324e-9))
+_AS241_E = wp.constant(vec8d(6.65790464350110377720e0, 5.46378491116411436990e0, 1.78482653991729133580e0,
+                             2.96560571828504891230e-1, 2.65321895265761230930e-2, 1.24266094738807843860e-3,
+                             2.71155556874348757815e-5, 2.01033439929228813265e-7))
+_AS241_F = wp.constant(vec8d(1.0, 5.99832206555887937690e-1, 1.36929880922735805310e-1, 1.48753612908506148525e-2,
+                             7.86869131145613259100e-4, 1.84631831751005468180e-5, 1.42151175831644588870e-7,
+                             2.04426310338993978564e-15))
+
+
+@wp.func
+def _ratio8(num: vec8d, den: vec8d, r: wp.float64):
+    """num(r) / den(r), both degree-7 polynomials (Horner)."""
+    p = num[7]
+    q = den[7]
+    for k in range(6, -1, -1):
+        p = p * r + num[k]
+        q = q * r + den[k]
+    return p / q
+
+
+@wp.func
+def normal_quantile(u: wp.float64):
+    """Phi^-1(u) for u in (0, 1): AS 241 (PPND16)."""
+    q = u - wp.float64(0.5)
+    if wp.abs(q) <= wp.float64(0.425):
+        return q * _ratio8(_AS241_A, _AS241_B, wp.float64(0.180625) - q * q)
+    r = wp.min(u, wp.float64(1.0) - u)
+    r = wp.sqrt(-wp.log(r))
+    z = wp.float64(0.0)
+    if r <= wp.float64(5.0):
+        z = _ratio8(_AS241_C, _AS241_D, r - wp.float64(1.6))
+    else:
+        z = _ratio8(_AS241_E, _AS241_F, r - wp.float64(5.0))
+    if q < wp.float64(0.0):
+        z = -z
+    return z
+
+
+@wp.func
+def uniform52(a: wp.uint32, b: wp.uint32):
+    """A uniform in the open interval (0, 1) on the grid (k + 1/2) / 2^52 from two 32-bit draws (exact in
+    float64)."""
+    k = wp.float64(a >> wp.uint32(6)) * wp.float64(67108864.0) + wp.float64(b >> wp.uint32(6))
+    return (k + wp.float64(0.5)) * wp.float64(2.220446049250313e-16)
+
+
+@wp.func
+def poisson_quantile(mu: wp.float64, u: wp.float64):
+    """The Poisson(mu) quantile of u (module docstring), as a float64 count; non-decreasing in mu and u."""
+    if mu < wp.float64(POISSON_INVERSION_MAX):
+        p = wp.exp(-mu)
+        cdf = p
+        n = wp.float64(0.0)
+        # the cap ends the sum where float64 rounding keeps the cdf just below a u within 1e-16 of 1
+        cap = mu + wp.float64(12.0) * wp.sqrt(mu) + wp.float64(12.0)
+        while cdf < u and n < cap:
+            n = n + wp.float64(1.0)
+            p = p * mu / n
+            cdf = cdf + p
+        return n
+    z = normal_quantile(u)
+    s = wp.sqrt(mu)
+    x = mu + s * z + (z * z + wp.float64(2.0)) / wp.float64(6.0) - (z * z * z + wp.float64(2.0) * z) / (
+        wp.float64(72.0) * s)
+    return wp.max(wp.floor(x), wp.float64(0.0))
+
+
+# --- the kernels ------------------------------------------------------------------------------------
 @wp.struct
 class SensorConsts:
     cfa: wp.vec4i  # channel at (row % 2) * 2 + (col % 2)
-    e_per_rad: float  # electrons_per_radiance_s * exposure_s
-    dark_e: float  # dark_current_e_per_s * exposure_s
-    read_e: float
-    full_well: float
-    dn_per_e: float  # 1 / g
-    black: float
-    dn_max: float
-    prnu: float
-    dsnu: float
-    gauss_lambda: float
-    mu_max: float
+    e_per_rad: wp.float64  # electrons_per_radiance_s * exposure_s
+    dark_e: wp.float64  # dark_current_e_per_s * exposure_s
+    read_e: wp.float64
+    full_well: wp.float64
+    dn_per_e: wp.float64  # 1 / g
+    black: wp.float64
+    dn_max: wp.float64
+    prnu: wp.float64
+    dsnu: wp.float64
+    mu_max: wp.float64
     noise_seed: int
     fpn_seed: int
 
 
 @wp.func
-def fixed_pattern_at(fpn_seed: int, pid: int, prnu: float, dsnu: float):
+def fixed_pattern_at(fpn_seed: int, pid: int, prnu: wp.float64, dsnu: wp.float64):
     """(relative gain 1 + PRNU clamped at 0, DSNU offset in electrons) of one pixel."""
     s = wp.rand_init(fpn_seed, pid)
-    gain = wp.max(1.0 + prnu * wp.randn(s), 0.0)
-    offset = dsnu * wp.randn(s)
-    return wp.vec2(gain, offset)
+    gain = wp.max(wp.float64(1.0) + prnu * normal_quantile(uniform52(wp.randu(s), wp.randu(s))), wp.float64(0.0))
+    offset = dsnu * normal_quantile(uniform52(wp.randu(s), wp.randu(s)))
+    return wp.vec2d(gain, offset)
 
 
 @wp.kernel
-def raw_kernel(rad: wp.array3d(dtype=float), k: SensorConsts, out: wp.array2d(dtype=wp.uint16)):
+def raw_kernel(rad: wp.array2d(dtype=wp.vec3f), k: SensorConsts, out: wp.array2d(dtype=wp.uint16)):
     i, j = wp.tid()
     pid = i * ROW_STRIDE + j
     c = k.cfa[(i % 2) * 2 + (j % 2)]
     fp = fixed_pattern_at(k.fpn_seed, pid, k.prnu, k.dsnu)
-    mu = rad[i, j, c] * k.e_per_rad * fp[0] + k.dark_e
-    mu = wp.min(wp.max(mu, 0.0), k.mu_max)
+    mu = wp.float64(rad[i, j][c]) * k.e_per_rad * fp[0] + k.dark_e
+    mu = wp.min(wp.max(mu, wp.float64(0.0)), k.mu_max)
     s = wp.rand_init(k.noise_seed, pid)
-    n = float(0.0)
-    if mu < k.gauss_lambda:
-        n = float(wp.poisson(s, mu))
-    else:
-        n = wp.max(wp.floor(mu + wp.sqrt(mu) * wp.randn(s) + 0.5), 0.0)
-    e = n + fp[1] + k.read_e * wp.randn(s)
+    n = poisson_quantile(mu, uniform52(wp.randu(s), wp.randu(s)))
+    e = n + fp[1] + k.read_e * normal_quantile(uniform52(wp.randu(s), wp.randu(s)))
     e = wp.min(e, k.full_well)
-    dn = wp.floor(e * k.dn_per_e + k.black + 0.5)
-    dn = wp.min(wp.max(dn, 0.0), k.dn_max)
+    dn = wp.floor(e * k.dn_per_e + k.black + wp.float64(0.5))
+    dn = wp.min(wp.max(dn, wp.float64(0.0)), k.dn_max)
     out[i, j] = wp.uint16(int(dn))
 
 
 @wp.kernel
-def fixed_pattern_kernel(fpn_seed: int, prnu: float, dsnu: float, gain: wp.array2d(dtype=float),
-                         offset: wp.array2d(dtype=float)):
+def fixed_pattern_kernel(fpn_seed: int, prnu: wp.float64, dsnu: wp.float64, gain: wp.array2d(dtype=wp.float64),
+                         offset: wp.array2d(dtype=wp.float64)):
     i, j = wp.tid()
     fp = fixed_pattern_at(fpn_seed, i * ROW_STRIDE + j, prnu, dsnu)
     gain[i, j] = fp[0]
@@ -180,34 +263,27 @@ def expected_dn(radiance, sensor: SensorParams, exposure_s: float, gain_db: floa
 
 
 def fixed_pattern(sensor: SensorParams, camera_key: str, height: int, width: int, device="cpu"):
-    """The camera's fixed patterns: (gain (H, W) float32 = 1 + PRNU, offset (H, W) float32 = DSNU in
+    """The camera's fixed patterns: (gain (H, W) float64 = 1 + PRNU, offset (H, W) float64 = DSNU in
     electrons), exactly those `simulate_raw` uses for `camera_key`."""
     _check_key(camera_key)
     _check_size(height, width)
     _init()
-    gain = wp.empty((height, width), dtype=float, device=device)
-    offset = wp.empty((height, width), dtype=float, device=device)
+    gain = wp.empty((height, width), dtype=wp.float64, device=device)
+    offset = wp.empty((height, width), dtype=wp.float64, device=device)
     wp.launch(fixed_pattern_kernel, dim=(height, width),
               inputs=[fixed_pattern_seed(camera_key), float(sensor.prnu), float(sensor.dsnu_e)],
               outputs=[gain, offset], device=device)
     return gain.numpy(), offset.numpy()
 
 
-def simulate_raw(radiance, *, sensor: SensorParams, exposure_s: float, gain_db: float = 0.0, seed: int,
-                 frame: int, camera_key: str, device="cpu") -> np.ndarray:
-    """One raw frame: radiance (H, W, 3) float32 in the sensor's radiance unit (after vignetting and
-    crosstalk) -> uint16 (H, W) digital numbers (see the module docstring for the model).
-
-    Deterministic: the same (radiance, sensor, exposure_s, gain_db, seed, frame, camera_key) give
-    byte-identical output on CPU."""
-    rad = _check_radiance(radiance)
+def sensor_consts(sensor: SensorParams, *, exposure_s: float, gain_db: float = 0.0, seed: int, frame: int,
+                  camera_key: str) -> SensorConsts:
+    """The raw kernel's constants for one frame (checked)."""
     t = _check_exposure(exposure_s)
     for name, v in (("seed", seed), ("frame", frame)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
             raise TypeError(f"{name} must be an integer, got {v!r}")
     _check_key(camera_key)
-    H, W = rad.shape[:2]
-    _check_size(H, W)
     g = effective_gain(sensor, gain_db)
     k = SensorConsts()
     k.cfa = wp.vec4i(*[int(v) for v in cfa_table(sensor.bayer).ravel()])
@@ -220,15 +296,36 @@ def simulate_raw(radiance, *, sensor: SensorParams, exposure_s: float, gain_db: 
     k.dn_max = float(dn_max(sensor))
     k.prnu = float(sensor.prnu)
     k.dsnu = float(sensor.dsnu_e)
-    k.gauss_lambda = float(GAUSS_LAMBDA)
     k.mu_max = float(MU_MAX)
     k.noise_seed = noise_seed(seed, frame, camera_key)
     k.fpn_seed = fixed_pattern_seed(camera_key)
+    return k
+
+
+def raw_frame(radiance: wp.array, consts: SensorConsts, out: wp.array | None = None) -> wp.array:
+    """One raw frame on radiance's device, no host round trip: radiance (H, W) vec3f Warp array
+    (non-negative, finite: the caller's guarantee) -> `out` (H, W) uint16 (allocated when None)."""
+    H, W = radiance.shape[:2]
+    _check_size(H, W)
+    if out is None:
+        out = wp.empty((H, W), dtype=wp.uint16, device=radiance.device)
+    wp.launch(raw_kernel, dim=(H, W), inputs=[radiance, consts], outputs=[out], device=radiance.device)
+    return out
+
+
+def simulate_raw(radiance, *, sensor: SensorParams, exposure_s: float, gain_db: float = 0.0, seed: int,
+                 frame: int, camera_key: str, device="cpu") -> np.ndarray:
+    """One raw frame: radiance (H, W, 3) in the sensor's radiance unit (after vignetting and crosstalk;
+    taken as float32) -> uint16 (H, W) digital numbers (see the module docstring for the model).
+
+    Deterministic: the same (radiance, sensor, exposure_s, gain_db, seed, frame, camera_key) give
+    byte-identical output."""
+    rad = _check_radiance(radiance)
+    _check_size(*rad.shape[:2])
+    k = sensor_consts(sensor, exposure_s=exposure_s, gain_db=gain_db, seed=seed, frame=frame, camera_key=camera_key)
     _init()
-    rad_wp = wp.array(np.ascontiguousarray(rad, dtype=np.float32), dtype=float, device=device)
-    out = wp.empty((H, W), dtype=wp.uint16, device=device)
-    wp.launch(raw_kernel, dim=(H, W), inputs=[rad_wp, k], outputs=[out], device=device)
-    return out.numpy()
+    rad_wp = wp.array(np.ascontiguousarray(rad, dtype=np.float32), dtype=wp.vec3f, device=device)
+    return raw_frame(rad_wp, k).numpy()
 
 
 # --- optics before the sensor (numpy) -------------------------------------------------------------

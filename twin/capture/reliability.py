@@ -114,10 +114,10 @@ def check_capture(out: Path, ref: Path) -> dict:
     """What a finished hardware capture must show: complete, verified, equal to the reference, every photo
     acknowledged with its own pattern's CRC, no camera frame used twice."""
     from twin.capture.backends.led_protocol import crc32
-    from twin.capture.session import CaptureSession
+    from twin.capture.session import LOCK, MANIFEST, CaptureSession
 
     hw, sim = CaptureSession.open(out), CaptureSession.open(ref)
-    listed = set(hw.files) | {"manifest.json", ".lock"}
+    listed = set(hw.files) | {MANIFEST, LOCK}
     unlisted = [p for p in out.rglob("*") if p.is_file() and str(p.relative_to(out)) not in listed]
     patterns = hw.patterns()
     crc = {n: f"{crc32(patterns.levels[i].tobytes()):08x}" for i, n in enumerate(patterns.names)}
@@ -126,7 +126,7 @@ def check_capture(out: Path, ref: Path) -> dict:
         frames.setdefault(rec["camera"], []).extend((rec["camera_run"], *f) for f in rec.get("camera_frames", []))
         for reason in rec.get("retakes", []):
             retakes[reason] = retakes.get(reason, 0) + 1
-    photos = {k for k in sim.files if k.startswith(("img", "raw/"))}
+    photos = {f for rec in sim.photos.values() for f in rec["files"]}  # raw frames and HDR photos
     return {
         "photos": len(hw.photos), "photos_planned": len(hw.header["plan"]),
         "photos_lost": len(hw.header["plan"]) - len(hw.photos),
@@ -139,9 +139,12 @@ def check_capture(out: Path, ref: Path) -> dict:
 
 
 def _photos(out: Path) -> int:
+    """Photos a capture folder lists so far (0 before its manifest exists)."""
+    from twin.capture.session import CaptureSession
+
     try:
-        return len(json.loads((out / "manifest.json").read_text())["photos"])
-    except (OSError, ValueError, KeyError):
+        return len(CaptureSession.open(out).photos)
+    except ValueError:  # not (yet) a capture folder, or a manifest being replaced
         return 0
 
 

@@ -1,14 +1,103 @@
 """`hemicube capture`: run the capture plan (twin.capture.plan) on a device backend (twin.capture.backends)
-into a session folder (twin.capture.session), resuming a killed run there."""
+into a session folder (twin.capture.session), resuming a killed run there.
+
+`photos` is the capture itself: it renders every pending pattern of a camera in one pass, then takes each
+photo (meter, exposure bracket, raw frames, HDR merge) on the backend's device; a photo leaves the device
+only when `capture` writes its files. `hemicube bench capture` times the same generator.
+
+Files: a finished photo is copied to the host (`HostCopies`: on CUDA into reused page-locked buffers, the
+fast transfer) and handed to one of WRITERS threads (packing, EXR compression and checksums release the
+GIL), so the device takes the next photos while earlier ones are written.
+"""
 from __future__ import annotations
 
 import hashlib
+import os
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import asdict
 from pathlib import Path
+
+import numpy as np
 
 from twin.capture.plan import (BRACKET, BRACKET_RATIO, CaptureError, bracket_exposures, build_patterns, frame_id,
                                paper_plan)
 from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession
+
+WRITERS = max(1, min(8, os.cpu_count() or 1))
+
+
+class HostCopies:
+    """Host (numpy) copies of device arrays in numbered slots: on CUDA each slot is a page-locked buffer,
+    reused by the next copy into that slot (its previous contents must be consumed by then); CPU arrays are
+    copied plainly."""
+
+    def __init__(self):
+        self._pinned = {}
+
+    def __call__(self, slot: int, *arrays) -> list[np.ndarray]:
+        import warp as wp
+
+        out = []
+        for i, a in enumerate(arrays):
+            if not a.device.is_cuda:
+                out.append(a.numpy().copy())
+                continue
+            key = (slot, i, a.shape, a.dtype)
+            if key not in self._pinned:
+                self._pinned[key] = wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
+            wp.copy(self._pinned[key], a)
+            wp.synchronize_stream(wp.get_stream(a.device))
+            out.append(self._pinned[key].numpy())
+        return out
+
+
+def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict | None = None):
+    """The plan's two scenes, the sample and the empty board (the transparency reference), on `backend`, open
+    for a `with` block; `devices` are the hardware backend's options (twin.capture.backends.hardware)."""
+    from twin.capture.backends import BACKENDS, open_backends as open_named
+
+    devices = devices or {}
+    if backend not in BACKENDS:
+        raise CaptureError(f"unknown backend {backend!r}; available: {sorted(BACKENDS)}")
+    if backend == "sim" and devices:
+        raise CaptureError(f"{', '.join(sorted(devices))}: options of --backend hardware, not of the simulator")
+    return open_named(backend, rig, maps, seed=seed, device=device, **devices)
+
+
+def photos(rig, sims: dict, patterns, todo, device: str, stage=None):
+    """Take the photos `todo` (plan entries): yields (photo, raws (n, H, W) uint16 Warp array, HDR merge
+    (twin.camera.hdr.merge_hdr_device's dict), record), all on `device`. `stage(name)`, when given, is a
+    context manager around each stage ("render", "sensor", "hdr"): the bench's timer."""
+    import warp as wp
+
+    from twin.camera.hdr import merge_hdr_device
+    from twin.capture.patterns import PatternSet
+
+    stage = stage or (lambda name: nullcontext())
+    index = {n: k for k, n in enumerate(patterns.names)}
+    with stage("render"):
+        for kind in ("sample", "empty"):  # every pending pattern of a camera in one pass
+            for cam in rig.cameras:
+                need = sorted({index[p.pattern] for p in todo if p.camera == cam and p.sample == kind})
+                if need:
+                    sims[kind].prepare(cam, PatternSet(patterns.levels[need],
+                                                       tuple(patterns.names[k] for k in need), rig.name))
+    for photo in todo:
+        sim = sims[photo.sample]
+        cam = rig.camera(photo.camera)
+        with stage("sensor"):
+            shown = sim.show(patterns.levels[index[photo.pattern]])
+            exposures = bracket_exposures(sim.meter(photo.camera), cam.sensor)
+            frames = [frame_id(photo, j) for j in range(len(exposures))]
+            raws = wp.empty((len(exposures), cam.height, cam.width), dtype=wp.uint16, device=device)
+            exposures, grabbed = sim.grab_bracket(photo.camera, exposures, frames, raws)  # as the camera applied
+        with stage("hdr"):
+            hdr = merge_hdr_device(raws, exposures, cam.sensor)
+            record = {"pattern": photo.pattern, "camera": photo.camera, "sample": photo.sample,
+                      "exposures_s": exposures, "frames": frames,
+                      "saturated_pixels": int(hdr["saturated_count"].numpy()[0]), **shown, **grabbed}
+        yield photo, raws, hdr, record
 
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
@@ -17,18 +106,11 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). Everything
     that can be checked, the devices included, is checked before the folder is made; a folder this call made
     is removed again when it fails before its first photo."""
-    from twin.camera.hdr import merge_hdr
-    from twin.capture.backends import BACKENDS, open_backends
-    from twin.capture.patterns import PatternSet
     from twin.materials.samples import load_sample
     from twin.optics.inputs import check_device
 
+    device = check_device(device)
     devices = {k: v for k, v in (devices or {}).items() if v is not None}
-    if backend not in BACKENDS:
-        raise CaptureError(f"unknown backend {backend!r}; available: {sorted(BACKENDS)}")
-    if backend == "sim" and devices:
-        raise CaptureError(f"{', '.join(sorted(devices))}: options of --backend hardware, not of the simulator")
-    check_device(device)
     # the twin renders (and so knows the ground truth) unless real cameras take the photos
     maps = load_sample(sample, resolution=resolution) if devices.get("cameras") != "basler" else None
     patterns = build_patterns(rig, learned)
@@ -40,39 +122,27 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
               "units": {"hdr": "W m^-2 sr^-1 (linear, camera RGB)", "length": "mm"}}
     if backend != "sim":  # a resume must not mix emulated and real cameras
         header["cameras"] = devices.get("cameras")
-    with open_backends(backend, rig, maps, seed=seed, device=device, **devices) as sims, \
+    with open_backends(rig, maps, backend, seed, device, devices) as sims, \
             CaptureSession.create(output, header) as session:
         session.write_setup(patterns, rig, maps)
         for c, cam in enumerate(rig.cameras):
             if maps is not None and not session.pixel_texel_done(c):
                 session.write_pixel_texel(c, sims["sample"].surfaces(cam).pixel_texel())
-
         todo = [p for p in plan if not session.photo_done(p)]
-        index = {n: k for k, n in enumerate(patterns.names)}
-        # Render every pattern of a camera in one pass, all of them whenever one is pending: BLAS does not
-        # sum a one-pattern product in the same order as a many-pattern one (the last bit differs, and so may
-        # the sensor's Poisson draws), so a resumed photo is bit-identical only if rendered in the same batch.
-        for kind in ("sample", "empty"):
-            for cam in rig.cameras:
-                mine = [p for p in plan if p.camera == cam and p.sample == kind]
-                need = sorted({index[p.pattern] for p in mine}) if any(p in todo for p in mine) else []
-                if need:
-                    sims[kind].prepare(cam, PatternSet(patterns.levels[need],
-                                                       tuple(patterns.names[k] for k in need), rig.name))
         bar = _progress(len(plan), len(plan) - len(todo), progress)
-        for photo in todo:
-            sim = sims[photo.sample]
-            shown = sim.show(patterns.levels[index[photo.pattern]])
-            sensor = rig.camera(photo.camera).sensor
-            exposures = bracket_exposures(sim.meter(photo.camera), sensor)
-            frames = [frame_id(photo, j) for j in range(len(exposures))]
-            raws, exposures, grabbed = sim.grab_bracket(photo.camera, exposures, frames)
-            hdr = merge_hdr(raws, exposures, sensor)
-            session.write_photo(photo, raws, hdr.radiance,
-                                {"pattern": photo.pattern, "camera": photo.camera, "sample": photo.sample,
-                                 "exposures_s": exposures, "frames": frames,
-                                 "saturated_pixels": int(hdr.saturated_mask.sum()), **shown, **grabbed})
-            bar.update(1)
+        host = HostCopies()
+        slots = [None] * (2 * WRITERS)  # a slot's buffers are reused once its photo is written
+        with ThreadPoolExecutor(WRITERS) as pool:
+            for n, (photo, raws, hdr, record) in enumerate(photos(rig, sims, patterns, todo, device)):
+                k = n % len(slots)
+                if slots[k] is not None:
+                    slots[k].result()
+                raws_h, rad_h = host(k, raws, hdr["radiance"])
+                slots[k] = pool.submit(session.write_photo, photo, list(raws_h), rad_h, record)
+                slots[k].add_done_callback(lambda f: bar.update(1))
+            for f in slots:
+                if f is not None:
+                    f.result()  # re-raises a writer's error
         bar.close()
     return session.dir
 

@@ -26,6 +26,7 @@ import hashlib
 import json
 import os
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +85,7 @@ class CaptureSession:
         self.photos: dict[str, dict] = photos
         self._lock_fd: int | None = None
         self._created = False
+        self._mutex = threading.Lock()  # write_photo may run in several writer threads
 
     # --- reading --------------------------------------------------------------------------------------
     @classmethod
@@ -302,19 +304,25 @@ class CaptureSession:
         return rec is not None and all(self.verified(r) for r in rec["files"])
 
     def write_photo(self, photo: Photo, raws: list[np.ndarray], radiance: np.ndarray, record: dict) -> None:
-        """One photo: its raw frames (BayerRG12p), the merged HDR EXR, then its manifest record."""
+        """One photo: its raw frames (BayerRG12p), the merged HDR EXR, then its manifest record. Thread-safe:
+        photos may be written concurrently (each lists itself in the manifest once its files are complete)."""
         from twin.camera.bayer import pack_bayer_rg12p
         from twin.materials.exr import write_rgb_exr
 
         i, c = photo.index, photo.camera_index
-        files = []
+        done = {}
         for j, raw in enumerate(raws):
-            self._write(_raw_file(i, c, j), pack_bayer_rg12p(raw))
-            files.append(_raw_file(i, c, j))
-        self._write_with(_photo_file(i, c), lambda tmp: write_rgb_exr(tmp, radiance))
-        files.append(_photo_file(i, c))
-        self.photos[photo_stem(i, c)] = {**record, "raw_shape": list(raws[0].shape), "files": files}
-        self.save()
+            data = pack_bayer_rg12p(raw)
+            write_bytes_atomic(self.dir / _raw_file(i, c, j), data)
+            done[_raw_file(i, c, j)] = hashlib.sha256(data).hexdigest()
+        path = self.dir / _photo_file(i, c)
+        with atomic_path(path) as tmp:
+            write_rgb_exr(tmp, radiance)
+        done[_photo_file(i, c)] = file_sha256(path)
+        with self._mutex:
+            self.files.update(done)
+            self.photos[photo_stem(i, c)] = {**record, "raw_shape": list(raws[0].shape), "files": list(done)}
+            self.save()
 
     def save(self) -> None:
         doc = {**self.header, "photos": self.photos, "files": self.files}

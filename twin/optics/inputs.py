@@ -37,8 +37,16 @@ CONVENTIONS = {
 }
 
 
+_quieted = False
+
+
 def _init():
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    """Initialise Warp, its start-up banner quieted once (a caller may lower the log level afterwards, e.g.
+    to collect module-load timings)."""
+    global _quieted
+    if not _quieted:
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+        _quieted = True
     wp.init()
 
 

@@ -17,6 +17,12 @@ Kernels:
   * project_kernel     (P, K)  B[p, k] = sum_l W[k, l] m[p, l] (differentiable w.r.t. m and W)
   * fused_loop_kernel  (P,)    B without storing m: portable loop, used on CPU
   * fused_tile_kernel  blocks  B without storing m: tiles in shared memory + tile_matmul, used on CUDA
+
+`point_frames_kernel_exact` and `lumitexel_kernel_exact` are the same kernels compiled without
+floating-point contraction (no FMA fusion): the two compilers place fused multiply-adds differently, so only
+then do +, -, *, / and sqrt round identically on the CPU and on CUDA. The virtual capture renders with them,
+so that one seed gives the same raw bytes on both devices (twin.camera.imaging); training keeps the fused
+ones.
 """
 from __future__ import annotations
 
@@ -112,9 +118,8 @@ def led_response(x: Any, frame: Any, wo_l: Any, rho_d: Any, rho_s: Any, ax: Any,
     return val * type(ax)(o.scale)
 
 
-@wp.kernel
-def point_frames_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp.array(dtype=Any),
-                        cam: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any)):
+def _point_frames(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan: wp.array(dtype=Any),
+                  cam: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any)):
     """Per point, once: the local frame (t', b, n) (Gram-Schmidt, ggx.local_frame) and the view
     direction in it. Every LED of the point reuses them."""
     p = wp.tid()
@@ -123,16 +128,22 @@ def point_frames_kernel(pos: wp.array(dtype=Any), nrm: wp.array(dtype=Any), tan:
     wo_l[p] = f * wp.normalize(cam[0] - pos[p])
 
 
-@wp.kernel
-def lumitexel_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any),
-                     rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any), ax: wp.array(dtype=Any),
-                     ay: wp.array(dtype=Any), beta: wp.array(dtype=Any),
-                     lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
-                     lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
-                     o: Options, out: wp.array2d(dtype=Any)):
+def _lumitexel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any),
+               rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any), ax: wp.array(dtype=Any),
+               ay: wp.array(dtype=Any), beta: wp.array(dtype=Any),
+               lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
+               lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
+               o: Options, out: wp.array2d(dtype=Any)):
     p, l = wp.tid()
     out[p, l] = led_response(pos[p], frames[p], wo_l[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p],
                              lpos[l], lnrm[l], lu[l], lint[l], prof, l, lbot[l], o)
+
+
+point_frames_kernel = wp.kernel(_point_frames)
+lumitexel_kernel = wp.kernel(_lumitexel)
+_EXACT = {"fuse_fp": False, "fast_math": False}
+point_frames_kernel_exact = wp.kernel(module="unique", module_options=_EXACT)(_point_frames)
+lumitexel_kernel_exact = wp.kernel(module="unique", module_options=_EXACT)(_lumitexel)
 
 
 @wp.kernel
@@ -163,12 +174,12 @@ def fused_loop_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_
                 out[p, k] = out[p, k] + wp.cw_mul(w[k, l], m)
 
 
-def point_inputs(pos, nrm, tan, rho_d, rho_s, ax, ay, beta, cam, device) -> list:
-    """Launch point_frames_kernel (recorded on an active wp.Tape, so gradients reach n and t) and return
-    the per-point argument list every kernel above takes."""
+def point_inputs(pos, nrm, tan, rho_d, rho_s, ax, ay, beta, cam, device, exact: bool = False) -> list:
+    """Launch point_frames_kernel (recorded on an active wp.Tape, so gradients reach n and t; `exact`: its
+    contraction-free twin) and return the per-point argument list every kernel above takes."""
     mat = wp.mat33d if pos.dtype == wp.vec3d else wp.mat33f
     frames = wp.zeros(pos.shape[0], dtype=mat, device=device, requires_grad=pos.requires_grad)
     wo_l = wp.zeros(pos.shape[0], dtype=pos.dtype, device=device, requires_grad=pos.requires_grad)
-    wp.launch(point_frames_kernel, dim=pos.shape[0], inputs=[pos, nrm, tan, cam], outputs=[frames, wo_l],
-              device=device)
+    wp.launch(point_frames_kernel_exact if exact else point_frames_kernel, dim=pos.shape[0],
+              inputs=[pos, nrm, tan, cam], outputs=[frames, wo_l], device=device)
     return [pos, frames, wo_l, rho_d, rho_s, ax, ay, beta]

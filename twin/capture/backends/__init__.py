@@ -8,8 +8,9 @@ the simulator and the real hardware (a serial LED controller and Basler cameras)
         backend.show(levels) -> dict             drive the LEDs: (L, 3) uint8 levels; returns what the devices
                                                  acknowledged, for the manifest
         backend.meter(camera) -> float           the brightest radiance expected (for the exposure bracket)
-        backend.grab_bracket(camera, exposures_s, frames) -> (raws, applied exposures_s, dict for the manifest)
-                                                 (H, W) uint16 raw Bayer frames (BayerRG12 values), one per
+        backend.grab_bracket(camera, exposures_s, frames, out) -> (applied exposures_s, dict for the manifest)
+                                                 fill `out`, an (n, H, W) uint16 Warp array on the capture's
+                                                 device, with one raw Bayer frame (BayerRG12 values) per
                                                  exposure; `frames` are the plan's frame ids (the twin's noise)
 
 `sim` is the simulator (sim.py); `hardware` the LED controller and pypylon cameras (hardware.py, with

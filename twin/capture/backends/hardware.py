@@ -96,16 +96,25 @@ class HardwareBackend:
 
     def _render(self, camera: str, frames):
         """What the emulated camera is fed: the twin's raw frames of the acknowledged pattern."""
+        import warp as wp
+
         def render(applied):
             self.twin.show(self._displayed())
-            return [self.twin.grab(camera, t, f) for t, f in zip(applied, frames)]
+            cam = self.rig.camera(camera)
+            out = wp.empty((len(applied), cam.height, cam.width), dtype=wp.uint16, device=self.twin.device)
+            for j, (t, f) in enumerate(zip(applied, frames)):
+                self.twin.grab(camera, t, f, out[j])
+            return list(out.numpy())
         return render
 
-    def grab_bracket(self, camera: str, exposures_s, frames):
+    def grab_bracket(self, camera: str, exposures_s, frames, out):
+        import warp as wp
+
         render = self._render(camera, frames) if self.twin is not None else None
         raws, applied, ids, retakes = self.devices.cameras[camera].grab_bracket(exposures_s, render, self._still_lit)
-        return raws, applied, {"camera_run": self.devices.run, "camera_frames": ids,
-                               **({"retakes": retakes} if retakes else {})}
+        wp.copy(out, wp.array(np.stack(raws), dtype=wp.uint16, device="cpu"))
+        return applied, {"camera_run": self.devices.run, "camera_frames": ids,
+                         **({"retakes": retakes} if retakes else {})}
 
 
 def _alive(pid: int) -> bool:

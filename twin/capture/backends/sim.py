@@ -1,7 +1,7 @@
 """The simulator backend (twin.capture.backends has the interface): `SimBackend` renders with the twin. Its
 scene radiance depends linearly on the LED drive (Eq. 2), so it renders each camera's lumitexel projection
 once for every pattern of the plan (`prepare`) and `show` only selects one; a pattern it was not prepared
-for is rendered on demand.
+for is rendered on demand. Surfaces, images and raw frames stay on the backend's device (twin.camera).
 """
 from __future__ import annotations
 
@@ -14,26 +14,30 @@ class SimBackend:
     def __init__(self, rig, maps, *, seed: int, device: str = "cpu"):
         self.rig, self.maps, self.seed, self.device = rig, maps, int(seed), device
         self._surfaces: dict = {}
-        self._radiance: dict = {}
+        self._radiance: dict = {}  # (camera, levels bytes) -> ((H, W) vec3f Warp view of a rendered image, max)
         self._levels: np.ndarray | None = None
 
     def surfaces(self, camera: str):
         from twin.camera.imaging import trace_pixels
 
         if camera not in self._surfaces:
-            self._surfaces[camera] = trace_pixels(self.rig, camera, self.maps)
+            self._surfaces[camera] = trace_pixels(self.rig, camera, self.maps, device=self.device)
         return self._surfaces[camera]
 
     def prepare(self, camera: str, patterns) -> None:
         """Render `patterns` (a PatternSet) for `camera` in one pass (one lumitexel evaluation per ray)."""
-        from twin.camera.imaging import render
+        import warp as wp
+
+        from twin.camera.imaging import render_device
 
         todo = [k for k, lv in enumerate(patterns.levels) if (camera, lv.tobytes()) not in self._radiance]
         if not todo:
             return
-        imgs = render(self.rig, camera, self.surfaces(camera), patterns.weights[todo], device=self.device)
-        for k, img in zip(todo, imgs):
-            self._radiance[(camera, patterns.levels[k].tobytes())] = img
+        imgs = render_device(self.rig, camera, self.surfaces(camera), patterns.weights[todo], device=self.device)
+        # the brightest value of each image, for the exposure (one transfer for all of them)
+        peak = wp.to_torch(imgs).reshape(len(todo), -1).amax(dim=1).cpu().numpy()
+        for i, k in enumerate(todo):
+            self._radiance[(camera, patterns.levels[k].tobytes())] = (imgs[i], float(peak[i]))
 
     def show(self, levels: np.ndarray) -> dict:
         levels = np.asarray(levels)
@@ -42,7 +46,7 @@ class SimBackend:
         self._levels = levels
         return {}
 
-    def _current(self, camera: str) -> np.ndarray:
+    def _current(self, camera: str):
         if self._levels is None:
             raise RuntimeError("no pattern shown yet: call show() first")
         key = (camera, self._levels.tobytes())
@@ -53,15 +57,17 @@ class SimBackend:
         return self._radiance[key]
 
     def meter(self, camera: str) -> float:
-        return float(self._current(camera).max())
+        return self._current(camera)[1]
 
-    def grab(self, camera: str, exposure_s: float, frame: int) -> np.ndarray:
-        from twin.camera.sensor import simulate_raw
+    def grab(self, camera: str, exposure_s: float, frame: int, out) -> None:
+        from twin.camera.sensor import raw_frame, sensor_consts
 
         cam = self.rig.camera(camera)
-        return simulate_raw(self._current(camera), sensor=cam.sensor, exposure_s=exposure_s, seed=self.seed,
-                            frame=frame, camera_key=f"{self.rig.digest()}/{camera}", device=self.device)
+        raw_frame(self._current(camera)[0], sensor_consts(cam.sensor, exposure_s=exposure_s, seed=self.seed,
+                                                          frame=frame, camera_key=f"{self.rig.digest()}/{camera}"),
+                  out)
 
-    def grab_bracket(self, camera: str, exposures_s, frames):
-        return [self.grab(camera, t, f) for t, f in zip(exposures_s, frames)], list(exposures_s), {}
-
+    def grab_bracket(self, camera: str, exposures_s, frames, out):
+        for j, (t, f) in enumerate(zip(exposures_s, frames)):
+            self.grab(camera, t, f, out[j])
+        return list(exposures_s), {}

@@ -1,0 +1,75 @@
+"""The bench commands check that their same-run baseline computes the same thing: a matching baseline
+passes (exit 0), a deliberately drifted one fails (exit 1). Tiny sizes: the figures are not the point."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hemicube.cli import main
+
+
+def _run(argv, capsys):
+    rc = main(argv)
+    out = capsys.readouterr()
+    return rc, json.loads(out.out), out.err
+
+
+LUMI = ["bench", "lumitexel", "--rig", "mini", "--points", "16", "--repeats", "1", "--no-compile"]
+
+
+def test_bench_lumitexel_baseline_matches(capsys):
+    rc, res, _ = _run(LUMI, capsys)
+    assert rc == 0 and res["passed"]
+    assert {c["check"] for c in res["checks"]} == {"warp_fused_vs_torch_eager",
+                                                   "warp_materialise_projected_vs_torch_eager"}
+
+
+def test_bench_lumitexel_drifted_baseline_fails(capsys, monkeypatch):
+    import twin.bench
+
+    plain = twin.bench.torch_lumitexel
+    # the issue's drift: the LED intensity on one side only (here: the baseline loses 1 % of it)
+    monkeypatch.setattr(twin.bench, "torch_lumitexel", lambda *a: plain(*a) * 0.99)
+    rc, res, err = _run(LUMI, capsys)
+    assert rc == 1 and not res["passed"]
+    assert "warp_fused_vs_torch_eager" in err
+
+
+RECON = ["bench", "reconstruct", "--rig", "mini", "--texels", "8"]
+
+
+@pytest.mark.slow
+def test_bench_reconstruct_baseline_matches_and_drift_fails(capsys, monkeypatch):
+    rc, res, _ = _run(RECON, capsys)
+    assert rc == 0 and res["passed"]
+    import reconstruction.finetune as ft
+
+    plain = ft.finetune
+
+    def drifted(model, latent, *a, **kw):  # the batched baseline starts from a shifted latent
+        cfg = a[-1] if a else kw["config"]
+        return plain(model, latent + (0.5 if cfg.batch == 100 else 0.0), *a, **kw)
+
+    monkeypatch.setattr(ft, "finetune", drifted)
+    rc, res, err = _run(RECON, capsys)
+    assert rc == 1 and "finetune_batch100_vs_batched_lines" in err
+
+
+CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--resolution", "32", "--scale", "0.5"]
+
+
+def test_bench_capture_whole_plan_and_checks(capsys, monkeypatch):
+    rc, res, _ = _run(CAPTURE, capsys)
+    assert rc == 0 and res["passed"] and res["photos"] == 196
+    assert {"warmup", "trace", "render", "sensor", "hdr", "download"} <= set(res["seconds"])
+    names = {c["check"] for c in res["checks"]}
+    assert {"render_sample_primary", "render_sample_secondary", "render_empty_primary",
+            "hdr_merge_first_photo"} <= names
+    import twin.camera.imaging as imaging
+
+    plain = imaging.render_reference
+    monkeypatch.setattr(imaging, "render_reference", lambda *a, **kw: plain(*a, **kw) * np.float32(1.001))
+    rc, res, err = _run(CAPTURE, capsys)
+    assert rc == 1 and "render_sample_primary" in err
