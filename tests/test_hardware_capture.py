@@ -11,6 +11,7 @@ import pytest
 
 import hemicube.cli
 from twin.capture.backends.led_emulator import spawn
+from twin.capture.backends.led_protocol import crc32
 from twin.capture.reliability import check_capture
 from twin.capture.session import verify
 
@@ -76,3 +77,40 @@ def test_hardware_capture_errors(controller, tmp_path, capsys):
         assert not out.exists()  # nothing is made before the devices are open
     assert hemicube.cli.main(ARGS + ["--led", url, "-o", str(tmp_path / "y")]) == 2
     assert "options of --backend hardware" in capsys.readouterr().err
+
+
+def test_frames_of_a_pattern_other_than_the_acknowledged_one_are_never_kept():
+    """The emulated cameras see what the controller says it displays; when that is not the pattern the photo
+    acknowledged (here another pattern is lit behind the backend's back), the bracket is refused, the
+    pattern lit again and the bracket retaken: the frame kept is the right pattern's, as the simulator's."""
+    import warp as wp
+
+    import twin
+    from twin.capture.patterns import PatternSet
+    from twin.capture.plan import build_patterns
+    from twin.capture.runner import open_backends
+    from twin.materials.samples import load_sample
+
+    rig = twin.load_rig("mini")
+    maps = load_sample("ramps", resolution=32)
+    ps = build_patterns(rig)
+    two = PatternSet(ps.levels[[0, 64]], (ps.names[0], ps.names[64]), rig.name)
+    proc, url = spawn(460)
+    try:
+        frames = {}
+        for name, devices in (("sim", None), ("hardware", {"led": url, "cameras": "emulated"})):
+            with open_backends(rig, maps, name, 1, "cpu", devices) as b:
+                be = b["sample"]
+                be.prepare("primary", two)
+                be.show(two.levels[0])
+                if name == "hardware":
+                    be.devices.led.show(two.levels[1])  # someone else lights the line
+                out = wp.empty((1, 192, 222), dtype=wp.uint16, device="cpu")
+                _, record = be.grab_bracket("primary", [1e-3], [7], out)
+                frames[name] = out.numpy()
+        assert record["retakes"] == [f"the LEDs changed during the bracket (displayed "
+                                     f"{crc32(two.levels[1].tobytes()):08x})"]
+        assert (frames["hardware"] == frames["sim"]).all()
+    finally:
+        proc.terminate()
+        proc.wait(10)

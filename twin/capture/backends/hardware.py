@@ -4,8 +4,9 @@ runs the same plan, session folder and resume.
 
     --cameras basler     the real a2A5328-15ucPRO cameras; exposures metered from preview frames
     --cameras emulated   pylon's camera emulation, fed with raw frames the twin renders from the pattern the
-                         controller ACKNOWLEDGES as displayed (so a wrong pattern shown would be a wrong photo),
-                         metered by the twin: the photos equal `--backend sim`'s, byte for byte
+                         controller acknowledges as displayed when the bracket starts (STATE), so a wrong
+                         pattern shown is a wrong frame, which the check below then refuses; metered by the
+                         twin: the photos equal `--backend sim`'s, byte for byte
 
 For each photo: `show` uploads and latches the pattern and keeps the controller's acknowledgement (its
 displayed CRC goes into the manifest); `grab_bracket` takes the exposure bracket as one grab session and keeps
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.capture.backends.led_protocol import crc32
-from twin.capture.backends.sim import SimBackend
+from twin.capture.backends.sim import SimBackend, check_levels
 from twin.capture.plan import CaptureError, DeviceError
 
 CAMERA_KINDS = ("emulated", "basler")
@@ -46,7 +47,8 @@ class HardwareBackend:
     def __init__(self, rig, devices: Devices, twin: SimBackend | None, *, empty_board: bool = False):
         self.rig, self.devices, self.twin = rig, devices, twin
         self._empty_board = empty_board  # this backend's photos need the sample taken off the board
-        self._known: dict[int, np.ndarray] = {}  # CRC -> levels, for every pattern shown
+        off = np.zeros((rig.num_leds, 3), np.uint8)  # what a controller shows after a reset
+        self._known: dict[int, np.ndarray] = {crc32(off.tobytes()): off}  # CRC -> levels, every pattern sent
         self._levels = None
         self._ack = None
 
@@ -55,14 +57,12 @@ class HardwareBackend:
 
     def prepare(self, camera: str, patterns) -> None:
         for levels in patterns.levels:  # store them on the controller while its slots last
-            self.devices.led.load(levels)
+            self._known[self.devices.led.load(levels)] = levels
         if self.twin is not None:
             self.twin.prepare(camera, patterns)
 
     def show(self, levels: np.ndarray) -> dict:
-        levels = np.asarray(levels)
-        if levels.shape != (self.rig.num_leds, 3) or levels.dtype != np.uint8:
-            raise ValueError(f"LED levels must be uint8 ({self.rig.num_leds}, 3), got {levels.dtype} {levels.shape}")
+        levels = check_levels(self.rig, levels)
         if self._empty_board and self.devices.prompt is not None:
             self.devices.prompt("take the sample off the board for the empty-board photo, then press Enter")
             self.devices.prompt = None
@@ -72,12 +72,13 @@ class HardwareBackend:
         return {"led_crc": f"{self._ack.displayed_crc:08x}"}
 
     def _displayed(self) -> np.ndarray:
-        """The levels of the pattern the controller acknowledged as displayed."""
+        """The levels the controller acknowledges as displayed now: what emulated cameras see."""
+        crc = self.devices.led.query().displayed_crc
         try:
-            return self._known[self._ack.displayed_crc]
+            return self._known[crc]
         except KeyError:
-            raise DeviceError(f"the LED controller displays a pattern this capture never sent (CRC "
-                              f"{self._ack.displayed_crc:08x})") from None
+            raise DeviceError(f"the LED controller displays a pattern this capture never sent (CRC {crc:08x}), "
+                              "which the emulated cameras cannot render") from None
 
     def meter(self, camera: str) -> float:
         if self.twin is None:

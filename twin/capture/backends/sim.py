@@ -8,6 +8,14 @@ from __future__ import annotations
 import numpy as np
 
 
+def check_levels(rig, levels) -> np.ndarray:
+    """LED levels as every backend takes them: uint8 (L, 3)."""
+    levels = np.asarray(levels)
+    if levels.shape != (rig.num_leds, 3) or levels.dtype != np.uint8:
+        raise ValueError(f"LED levels must be uint8 ({rig.num_leds}, 3), got {levels.dtype} {levels.shape}")
+    return levels
+
+
 class SimBackend:
     name = "sim"
 
@@ -40,10 +48,7 @@ class SimBackend:
             self._radiance[(camera, patterns.levels[k].tobytes())] = (imgs[i], float(peak[i]))
 
     def show(self, levels: np.ndarray) -> dict:
-        levels = np.asarray(levels)
-        if levels.shape != (self.rig.num_leds, 3) or levels.dtype != np.uint8:
-            raise ValueError(f"LED levels must be uint8 ({self.rig.num_leds}, 3), got {levels.dtype} {levels.shape}")
-        self._levels = levels
+        self._levels = check_levels(self.rig, levels)
         return {}
 
     def _current(self, camera: str):
