@@ -5,8 +5,9 @@
     write_maps(maps, directory, overwrite=False)             read_maps(directory, size_mm=None)
     canonical_anisotropy(maps) -> maps with αx ≥ αy (the reference's export convention)
     builtin_sample(name, resolution=128, seed=0, size_mm=120.0)   BUILTIN_SAMPLES = ("ramps", "brushed_metal",
-                                                                                    "satin_weave")
-    load_sample(name_or_dir, resolution=128) -> SVBRDFMaps
+                                          "satin_weave") + the material suite (twin.material_suite: satin, wood,
+                                          paper, metal, leather, ceramic, woven, fabric, wallpaper, quadrants)
+    load_sample(name_or_dir, resolution=128) -> SVBRDFMaps      (a name, "NAME@SEED" or a map folder)
 
 Parameters (per texel, all float32)
     rho_d (H, W, 3)        diffuse albedo ρd ∈ [0, 1] (linear RGB)
@@ -586,6 +587,11 @@ def _satin_weave(res: int, seed: int, size_mm: float) -> dict:
 
 
 _BUILDERS = {"ramps": _ramps, "brushed_metal": _brushed_metal, "satin_weave": _satin_weave}
+# the material suite (issue #14): one sample per OpenSVBRDF category and `quadrants` (twin.material_suite)
+from .material_suite import BUILDERS as _SUITE_BUILDERS  # noqa: E402  (it imports this module's helpers)
+
+_BUILDERS.update(_SUITE_BUILDERS)
+BUILTIN_SAMPLES = BUILTIN_SAMPLES + tuple(_SUITE_BUILDERS)
 
 
 def _integer(value, what: str) -> int:
@@ -624,10 +630,15 @@ builtin_sample.__doc__ += "\n\n" + "\n\n".join(f"{k}: {_BUILDERS[k].__doc__}" fo
 
 
 def load_sample(name_or_dir, resolution: int = 128) -> SVBRDFMaps:
-    """A built-in sample by name (BUILTIN_SAMPLES, at `resolution`, seed 0) or a map folder (read_maps;
-    `resolution` is then ignored: the folder's maps are used as they are)."""
+    """A built-in sample by name (BUILTIN_SAMPLES, at `resolution`, seed 0), or "NAME@SEED" for another seed
+    (another composition of the same sample: the held-back variants of the material suite), or a map folder
+    (read_maps; `resolution` is then ignored: the folder's maps are used as they are)."""
     if isinstance(name_or_dir, str) and name_or_dir in BUILTIN_SAMPLES:
         return builtin_sample(name_or_dir, resolution)
+    if isinstance(name_or_dir, str) and "@" in name_or_dir:
+        name, _, seed = name_or_dir.partition("@")
+        if name in BUILTIN_SAMPLES and seed.isdigit():
+            return builtin_sample(name, resolution, int(seed))
     path = Path(name_or_dir)
     if not path.is_dir():
         raise SampleError(f"{str(name_or_dir)!r} is neither a built-in sample ({', '.join(BUILTIN_SAMPLES)}) "
