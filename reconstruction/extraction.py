@@ -97,12 +97,18 @@ class Measurements:
     valid: np.ndarray          # (N,) bool: seen by both views, every value finite
     pixel_primary: np.ndarray  # (N, 2) the texel centre's primary pixel (x, y)
     pixel_secondary: np.ndarray  # (N, 2) its aligned secondary pixel (x, y), NaN where unknown
+    # the 64 learned-pattern photos (+ and - frames, photos 0-63) of both views (the secondary through the
+    # alignment), RGB, and their patterns' relative drive on the upper LEDs: non-negative measurements like the
+    # lines, which the GGX fit uses too
+    learned_photos: np.ndarray   # (N, 2, 64, 3) views [primary, secondary]
+    learned_weights: np.ndarray  # (64, L_upper, 3)
 
     def save(self, path) -> None:
         from twin.atomic import atomic_path
 
         with atomic_path(Path(path), suffix=".npz") as tmp:
             np.savez(tmp, learned=self.learned, lines=self.lines, line_weights=self.line_weights,
+                     learned_photos=self.learned_photos, learned_weights=self.learned_weights,
                      transparency=self.transparency, valid=self.valid, pixel_primary=self.pixel_primary,
                      pixel_secondary=self.pixel_secondary,
                      grid=np.array([self.grid.resolution, self.grid.size_mm], np.float64))
@@ -256,10 +262,12 @@ def extract(capture, rig, grid: TextureGrid, alignment, *, progress: bool = Fals
 
     n = len(pos)
     learned = np.empty((n, 2, len(LEARNED) // 2), np.float32)
+    learned_photos = np.empty((n, 2, len(LEARNED), 3), np.float32)
     for c, (uv, ks) in enumerate(((uv0, k0), (uv1, k1))):
         for p in tqdm(range(len(LEARNED) // 2), desc=f"extract learned cam{c}", disable=not progress):
-            diff = photo(2 * p, c) - photo(2 * p + 1, c)
-            learned[:, c, p] = _sample(diff, uv, ks).mean(axis=1) * scale
+            plus, minus = (_sample(photo(2 * p + s, c), uv, ks) * scale for s in (0, 1))
+            learned[:, c, p] = (plus - minus).mean(axis=1)
+            learned_photos[:, c, 2 * p], learned_photos[:, c, 2 * p + 1] = plus, minus
     lines = np.empty((n, len(LINES), 3), np.float32)
     for j, k in enumerate(tqdm(LINES, desc="extract lines", disable=not progress)):
         lines[:, j] = _sample(photo(k, 0), uv0, k0) * scale
@@ -267,8 +275,12 @@ def extract(capture, rig, grid: TextureGrid, alignment, *, progress: bool = Fals
     empty = _sample(photo(EMPTY_BOTTOM, 0), uv0, k0).mean(axis=1)
     transparency = np.clip(bottom / (empty + 1e-6), 0.0, 1.0).astype(np.float32)  # reference §6.3
     valid = (np.isfinite(learned).all(axis=(1, 2)) & np.isfinite(lines).all(axis=(1, 2))
-             & np.isfinite(transparency))
+             & np.isfinite(learned_photos).all(axis=(1, 2, 3)) & np.isfinite(transparency))
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
     weights = capture_patterns(capture, rig, [f"line_{j:02d}" for j in range(len(LINES))])[:, upper, :]
+    shown = {p["index"]: p["pattern"] for p in doc.get("plan", []) if p["camera_index"] == 0}
+    if any(k not in shown for k in LEARNED):
+        raise ExtractionError(f"{capture}: manifest.json's plan does not name the pattern of photos 0-63")
+    learned_weights = capture_patterns(capture, rig, [shown[k] for k in LEARNED])[:, upper, :]
     return Measurements(grid, learned, lines, weights, transparency, valid, uv0.astype(np.float32),
-                        uv1.astype(np.float32))
+                        uv1.astype(np.float32), learned_photos, learned_weights)

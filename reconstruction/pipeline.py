@@ -161,8 +161,15 @@ def _reconstruct_into(out: Path, capture: Path, doc: dict, rig, config: Reconstr
     t = stage("fitting")
     lumi = decode_rgb(model, ft.latent)
     keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
-    fit = fit_ggx(rig, grid.positions(rig), lumi, lines=meas.lines[:, keep], line_weights=meas.line_weights[keep],
-                  grid_shape=grid.shape, config=replace(config.fit, device=config.device))
+    # the fit's measured photos (ours, issue #14): the kept lines and the 64 learned-pattern photos of the primary
+    # view, and those of the secondary view: the learned patterns light many LEDs at once, so they sample narrow
+    # lobes between the lines, and the 45-degree view sees the grazing half-angles where Fresnel lifts a weak
+    # specular lobe (docs/accuracy.md: ceramic alpha 21% -> 12% with the primary photos, ...)
+    photos = np.concatenate([meas.lines[:, keep], meas.learned_photos[:, 0]], axis=1)
+    weights = np.concatenate([meas.line_weights[keep], meas.learned_weights], axis=0)
+    fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
+                  secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,
+                  config=replace(config.fit, device=config.device))
     timings["fitting_s"] = time.perf_counter() - t
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
                    name=f"reconstruction of {doc.get('sample', 'a capture')}")

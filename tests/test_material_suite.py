@@ -91,7 +91,7 @@ def test_each_category_keeps_its_character_on_every_seed(suite):
         assert s["paper"].rho_s.max() >= 11.0  # the foil stamp: paper's ps_range is 20 (reference §5)
         tilt = lambda m: np.degrees(np.arccos(m.normal[..., 2].astype(np.float64)))  # noqa: E731
         assert tilt(s["leather"]).max() >= 24.0 and np.median(tilt(s["leather"])) >= 3.0
-        assert 8.0 <= tilt(s["wallpaper"]).max() <= 13.0
+        assert 5.0 <= tilt(s["wallpaper"]).max() <= 9.0  # embossed ornament (6°) on a vinyl grain (2°)
         q = parameter_ranges(s["quadrants"])
         assert q["anisotropy"][0] <= 1.0001 and q["anisotropy"][1] >= 7.99 and q["tilt_deg"][1] >= 19.0
 
