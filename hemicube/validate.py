@@ -135,10 +135,10 @@ def _suite_member(rig: str, sample: str, device: str, output: str, resolution, s
             "images": {k: str(v) for k, v in paths["images"].items()}, "seconds": time.perf_counter() - t0}
 
 
-def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
-              jobs: int | None = None, as_json=False) -> int:
-    """`hemicube validate --suite [NAMES]` (module docstring). Exit code 0 when every check and every
-    threshold of every sample passes."""
+def suite_results(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
+                  jobs: int | None = None) -> dict:
+    """Run the suite (module docstring) and write its report: {"rig", "device", "checks", "samples" (one result
+    per name, in order), "report" (its folder), "passed"}."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -168,13 +168,24 @@ def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int
     ordered = [results[s] for s in names]
     report = write_suite_report(out / "report", rig_obj.name, ordered, checks)
     ok = all(c.passed for c in checks) and all(r["passed"] for r in ordered)
+    return {"rig": rig_obj.name, "device": device, "checks": checks, "samples": ordered, "report": report,
+            "passed": ok}
+
+
+def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
+              jobs: int | None = None, as_json=False) -> int:
+    """`hemicube validate --suite [NAMES]` (module docstring). Exit code 0 when every check and every
+    threshold of every sample passes."""
+    res = suite_results(names, rig, device, output, resolution, seed, jobs)
+    checks, ordered, report, ok = res["checks"], res["samples"], res["report"], res["passed"]
+    names = [r["sample"] for r in ordered]
     if as_json:
-        print(json.dumps({"rig": rig_obj.name, "device": device, "passed": ok, "report": str(report),
+        print(json.dumps({"rig": res["rig"], "device": device, "passed": ok, "report": str(report),
                           "checks": [{**c.__dict__, "passed": c.passed} for c in checks],
                           "samples": [{k: v for k, v in r.items() if k != "images"} for r in ordered]},
                          indent=2, default=lambda o: None))
         return 0 if ok else 1
-    print(f"hemicube validate --suite: rig {rig_obj.name!r}, {len(names)} samples, device {device}")
+    print(f"hemicube validate --suite: rig {res['rig']!r}, {len(names)} samples, device {device}")
     _print_checks(checks)
     print(suite_table(ordered))
     print(f"  report: {report}")

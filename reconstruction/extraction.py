@@ -15,9 +15,15 @@ photo 128 against the empty-board photo 130), as the largest centred square insi
 Per photo and camera (reference §6.3, with the differences stated):
   1. flat field and colour matrix (twin.camera.correction, from the rig's calibration): camera RGB -> the
      LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
-  2. an anti-aliasing Gaussian matched to the texel footprint, the reference's odd kernel width
-     k = 2 ceil(d/2 + 1) - 1 with d the largest pixel step between adjacent texels (only when d > 1.5 px:
-     a texel smaller than ~1.5 px needs none);
+  2. with `anti_alias` only (off by default, ours): an anti-aliasing Gaussian matched to the texel footprint,
+     the reference's odd kernel width k = 2 ceil(d/2 + 1) - 1 with d the largest pixel step between adjacent
+     texels (only when d > 1.5 px). Why off: the GGX fit models the BRDF AT the texel centre, and the
+     Gaussian (sigma ~1.1 px for texels 2 px apart) mixes the neighbours' light in: a weak lobe next to a
+     glossy one took +1% of the bright lines from its neighbour's highlight (issue #14's paper, wallpaper).
+     Measured on the material suite (mini rig, 48², same captures, docs/accuracy.md): median normal error
+     halved where there is relief (wood 0.18 -> 0.08°, leather 0.20 -> 0.11°, wallpaper 0.31 -> 0.15°), alpha
+     better on 8 of 10 samples (wallpaper 7.5/9.4% -> 4.6/6.7%); a point sample is noisier, so rho_s got worse
+     on the weak lobes (fabric 10.2 -> 12.9%, paper 13.3 -> 16.4%), which the fit's prior then pools;
   3. the value at the texel centre's projection, BILINEAR (the reference truncates to the pixel, a
      half-pixel bias), through the camera's own distortion (no separate undistortion pass: the projection
      already lands on the raw pixel);
@@ -96,6 +102,11 @@ class Measurements:
     valid: np.ndarray          # (N,) bool: seen by both views, every value finite
     pixel_primary: np.ndarray  # (N, 2) the texel centre's primary pixel (x, y)
     pixel_secondary: np.ndarray  # (N, 2) its aligned secondary pixel (x, y), NaN where unknown
+    # the 64 learned-pattern photos (+ and - frames, photos 0-63) of both views (the secondary through the
+    # alignment), RGB, and their patterns' relative drive on the upper LEDs: non-negative measurements like the
+    # lines, which the GGX fit uses too
+    learned_photos: np.ndarray   # (N, 2, 64, 3) views [primary, secondary]
+    learned_weights: np.ndarray  # (64, L_upper, 3)
 
 
 def capture_patterns(session: CaptureSession, rig, names) -> np.ndarray:
@@ -194,8 +205,9 @@ def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
     return _sample(alignment.map, uv_primary, 0)
 
 
-def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, progress: bool = False) -> Measurements:
-    """Per-texel measurements of a capture (module docstring)."""
+def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_alias: bool = False,
+            progress: bool = False) -> Measurements:
+    """Per-texel measurements of a capture (module docstring; step 2 only with `anti_alias`)."""
     from .data import LUMITEXEL_SCALE
 
     if session.rig_digest != rig.digest():
@@ -207,7 +219,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, progr
     pos = grid.positions(rig)
     uv0, _ = cams[0].project(pos)
     uv1 = secondary_pixels(uv0, alignment)
-    k0, k1 = _kernel_width(uv0, grid.shape), _kernel_width(uv1, grid.shape)
+    k0, k1 = (_kernel_width(uv, grid.shape) if anti_alias else 0 for uv in (uv0, uv1))
     scale = np.float32(LUMITEXEL_SCALE)
 
     calibrations = [calibration_of(c) for c in cams]
@@ -219,10 +231,12 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, progr
 
     n = len(pos)
     learned = np.empty((n, 2, len(LEARNED) // 2), np.float32)
+    learned_photos = np.empty((n, 2, len(LEARNED), 3), np.float32)
     for c, (uv, ks) in enumerate(((uv0, k0), (uv1, k1))):
         for p in tqdm(range(len(LEARNED) // 2), desc=f"extract learned cam{c}", disable=not progress):
-            diff = photo(2 * p, c) - photo(2 * p + 1, c)
-            learned[:, c, p] = _sample(diff, uv, ks).mean(axis=1) * scale
+            plus, minus = (_sample(photo(2 * p + s, c), uv, ks) * scale for s in (0, 1))
+            learned[:, c, p] = (plus - minus).mean(axis=1)
+            learned_photos[:, c, 2 * p], learned_photos[:, c, 2 * p + 1] = plus, minus
     lines = np.empty((n, len(LINES), 3), np.float32)
     for j, k in enumerate(tqdm(LINES, desc="extract lines", disable=not progress)):
         lines[:, j] = _sample(photo(k, 0), uv0, k0) * scale
@@ -230,8 +244,12 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, progr
     empty = _sample(photo(EMPTY_BOTTOM, 0), uv0, k0).mean(axis=1)
     transparency = np.clip(bottom / (empty + 1e-6), 0.0, 1.0).astype(np.float32)  # reference §6.3
     valid = (np.isfinite(learned).all(axis=(1, 2)) & np.isfinite(lines).all(axis=(1, 2))
-             & np.isfinite(transparency))
+             & np.isfinite(learned_photos).all(axis=(1, 2, 3)) & np.isfinite(transparency))
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
     weights = capture_patterns(session, rig, [f"line_{j:02d}" for j in range(len(LINES))])[:, upper, :]
+    shown = session.shown_patterns(0)
+    if any(k not in shown for k in LEARNED):
+        raise ExtractionError(f"{session.dir}: the capture's plan does not name the pattern of photos 0-63")
+    learned_weights = capture_patterns(session, rig, [shown[k] for k in LEARNED])[:, upper, :]
     return Measurements(grid, learned, lines, weights, transparency, valid, uv0.astype(np.float32),
-                        uv1.astype(np.float32))
+                        uv1.astype(np.float32), learned_photos, learned_weights)

@@ -42,10 +42,11 @@ Parameterisation of the geometry: 5 unconstrained numbers per texel, [u, v, thet
 The neural method's heads add 6 numbers, rho_d = sigmoid(d) and rho_s = rho_s_max sigmoid(s) (reference §5).
 
 Methods (FITTING_METHODS, dispatched by `fit_method`, one function each):
-  * "direct" (ours): Adam on the 5 geometry numbers per texel, the albedos in closed form at every step
-    (variable projection: the 6 linear unknowns never slow the descent). Texels are independent, so
-    `batch` splits them into chunks fitted one after the other (the SUM of per-texel losses is minimised:
-    each texel's gradient is its own, and a chunk is the same problem as the whole, up to float rounding).
+  * "direct" (ours): Levenberg-Marquardt on the 5 geometry numbers per texel (forward-difference Jacobian),
+    the albedos in closed form at every evaluation (variable projection: the 6 linear unknowns never slow
+    it), in chunks of `batch` texels; on a grid, neighbour propagation (`_propagate`), then the joint prior
+    on roughness and specular albedo (`_joint_roughness`, `_joint_albedos`; FitConfig.alpha_prior), which
+    couples neighbouring texels of one material so that a lobe the photos barely see is pooled (issue #14).
   * "neural" (reference §5): a learnable feature texture (channels, R, C), Xavier-uniform, sampled with
     grid_sample (bilinear, align_corners=True) at the texel centres, feeds 5 MLP heads (n 2, theta 1,
     alpha 2, rho_d 3, rho_s 3), each channels -> hidden -> hidden -> hidden -> k with LeakyReLU(0.2), whose
@@ -56,7 +57,9 @@ peak points elsewhere the half vector of that peak; times a few isotropic and an
 and tangent angles), each with its closed-form albedos; each texel starts from its lowest-loss candidate.
 The neural method first regresses its heads onto these numbers (warm start).
 
-Measured (the defaults' evidence; mini rig, one core of a shared 2-core CPU). Synthetic: the `ramps` sample
+Measured (the evidence for "direct", "log1p" and lambda_lines, taken with the Adam version of "direct" before
+issue #14; docs/accuracy.md has the material suite's measurements of the Levenberg-Marquardt fit, the joint
+prior and the photo groups; mini rig, one core of a shared 2-core CPU). Synthetic: the `ramps` sample
 resampled by twin.materials.samples, primary view; "exact" = the truth's lumitexels and lines; "decoded" = the
 shipped network's RGB decode of the truth (grey shape latent from both views, per-channel albedo latents;
 median error 27% per lumitexel, no fine-tuning) with the exact lines x (1 + 2% Gaussian noise). Pipeline:
@@ -113,13 +116,24 @@ class FitConfig:
     module docstring's table)."""
 
     method: str = "direct"  # ours, measured
-    # Adam steps. direct (ours): full-batch steps, ~0.5 s each for 2,304 texels x 396 LEDs on one CPU core;
-    # neural: steps of `batch` texels (the reference runs 120,000 steps of 128 texels on a GPU).
-    iterations: int | None = None  # None: 60 (direct), 600 (neural)
-    lr: float | None = None  # None: 0.02 (direct, ours, measured against 0.01 and 0.05), 1e-3 (neural, ref. §5)
+    # direct (ours): Levenberg-Marquardt iterations (6 evaluations of the forward model each, on the texels not
+    # yet converged); neural: Adam steps of `batch` texels (the reference runs 120,000 steps of 128 texels).
+    iterations: int | None = None  # None: 20 (direct), 600 (neural)
+    lr: float | None = None  # the neural method's Adam (None: 1e-3, reference §5); the direct method has none
     batch: int | None = None  # direct: texels per chunk (None: all); neural: texels per step (None: 256)
-    alpha_range: tuple = (0.006, 0.503)  # reference §5: 0.006 + 0.497 sigmoid
-    rho_s_max: float = 10.0  # reference §5 ps_range (20 for paper, a map range twin.materials.samples allows)
+    # the widest of the reference's per-class ranges (§5 OBJECT_CONFIG: 0.006 + axay_range, 1.0 for wood and
+    # woven; ps_range 20 for paper), one setting for every sample: issue #14's suite reaches alpha 0.6 and rho_s
+    # 18, which the default-class ranges (0.503, 10) clip
+    alpha_range: tuple = (0.006, 1.006)
+    rho_s_max: float = 20.0
+    lm_damping: float = 1e-2  # direct: Levenberg-Marquardt's initial mu (ours)
+    fd_step: float = 1e-3  # direct: forward-difference step of the Jacobian in every number (ours)
+    tolerance: float = 1e-5  # direct: a texel stops when a kept step lowers its loss by less (relative; ours)
+    propagation: int = 2  # direct, on a grid: rounds of neighbour propagation (ours; _propagate)
+    # direct, on a grid (ours; _joint_roughness): the expected change of log alpha between neighbouring texels of
+    # one material, the scale of a Gaussian smoothness prior that texels whose photos barely constrain alpha
+    # (a weak or rough lobe) borrow from; None: every texel alone
+    alpha_prior: float | None = 0.1
     # weight of the line term (reference §5's lambda_m; ours, measured). The reference's 0.01-0.1 multiply
     # unnormalised sums, whose squares exceed the lumitexels' by (mean M / mean m)^2 (81 on the mini rig's
     # ramps, more with the paper rig's longer lines): 0.8-8 or more in this normalised loss.
@@ -128,8 +142,9 @@ class FitConfig:
     seed: int = 0  # the neural method's initialisation and batches (the direct method draws nothing)
     device: str = "cpu"
     camera: str = "primary"  # the view the lumitexels were decoded for (reference §5: primary only)
+    secondary_camera: str = "secondary"  # the view of fit_ggx's `secondary` photos (ours)
     # initial candidates (ours): roughness levels (log-spaced inside the reference range), tangent angles
-    init_alphas: tuple = (0.02, 0.08, 0.3)
+    init_alphas: tuple = (0.02, 0.08, 0.3, 0.8)
     init_thetas: int = 3
     # neural method (reference §5: 24 channels, 128 hidden; scaled down for a CPU)
     features: int = 16  # the paper's "16 neural parameters" (reference §5; the code uses 24)
@@ -145,8 +160,10 @@ class FitConfig:
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < least):
                 raise ValueError(f"FitConfig.{k} must be an integer >= {least} or None, got {v!r}")
-        if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
-            raise ValueError(f"FitConfig.lr must be positive, got {self.lr!r}")
+        for k in ("lr", "lm_damping", "fd_step", "tolerance", "alpha_prior"):
+            v = getattr(self, k)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"FitConfig.{k} must be positive, got {v!r}")
         lo, hi = (float(a) for a in self.alpha_range)
         if not (ALPHA_RANGE[0] <= lo < hi <= ALPHA_RANGE[1]):
             raise ValueError(f"FitConfig.alpha_range must satisfy {ALPHA_RANGE[0]} <= lo < hi <= {ALPHA_RANGE[1]} "
@@ -158,6 +175,8 @@ class FitConfig:
             raise ValueError(f"FitConfig.lambda_lines must be >= 0, got {self.lambda_lines}")
         if not self.init_alphas or not all(lo < a < hi for a in self.init_alphas):
             raise ValueError(f"FitConfig.init_alphas must be non-empty and inside alpha_range {self.alpha_range}")
+        if isinstance(self.propagation, bool) or not isinstance(self.propagation, int) or self.propagation < 0:
+            raise ValueError(f"FitConfig.propagation must be an integer >= 0, got {self.propagation!r}")
         for k in ("init_thetas", "features", "hidden"):
             if getattr(self, k) < 1:
                 raise ValueError(f"FitConfig.{k} must be >= 1, got {getattr(self, k)}")
@@ -166,11 +185,11 @@ class FitConfig:
 
     @property
     def steps(self) -> int:
-        return self.iterations if self.iterations is not None else {"direct": 60, "neural": 600}[self.method]
+        return self.iterations if self.iterations is not None else {"direct": 20, "neural": 600}[self.method]
 
     @property
     def learning_rate(self) -> float:
-        return self.lr if self.lr is not None else {"direct": 0.02, "neural": 1e-3}[self.method]
+        return self.lr if self.lr is not None else 1e-3
 
 
 @dataclass
@@ -193,6 +212,25 @@ class FitResult:
 
 # --- the problem: checked inputs on a device -------------------------------------------------------------
 @dataclass
+class _Photos:
+    """One camera's photo measurements (the lines, the learned patterns' photos): M (3, n, K) channel-major
+    (for matmul), f(M), their Gauss-Newton weights lam f'(M)^2 / (3 K), the upper-LED weights W (3, L, K),
+    the "mse" scale (their mean) and their weight in the loss, lam = lambda_lines x K / (all photos' K): every
+    photo of every camera weighs the same."""
+
+    camera: str
+    M: torch.Tensor
+    M_f: torch.Tensor
+    M_w: torch.Tensor
+    W: torch.Tensor
+    scale: float
+    lam: float
+
+    def part(self, idx: torch.Tensor) -> "_Photos":
+        return replace(self, M=self.M[:, idx], M_f=self.M_f[:, idx], M_w=self.M_w[:, idx])
+
+
+@dataclass
 class _Problem:
     rig: object
     config: FitConfig
@@ -200,15 +238,11 @@ class _Problem:
     target: torch.Tensor  # (n, L, 3) the lumitexels m
     target_f: torch.Tensor  # (n, L, 3) f(m) (the loss compares f(m_hat) with it; `_f`)
     weight: torch.Tensor  # (n, L, 3) the albedo quadratic's weights f'(m)^2 / (3 L)
-    lines: torch.Tensor | None  # (3, n, K) the line measurements M, channel-major (for matmul)
-    lines_f: torch.Tensor | None  # (3, n, K) f(M)
-    lines_weight: torch.Tensor | None  # (3, n, K) lambda f'(M)^2 / (3 K)
-    W: torch.Tensor | None  # (3, L, K) upper-LED line weights, channel-major
+    photos: tuple  # _Photos of each camera that has measurements (primary first); empty: lumitexels only
     upper: torch.Tensor  # (L,) int64: the upper LEDs' indices among the rig's
     ratio: torch.Tensor  # (2, L, 3): I[l, c] / I[l, 0] and I[l, c] / I[l, 1] (module docstring)
     frame: torch.Tensor  # (3, 3) rows N, X, Y of the sample plane
     scale_m: float  # "mse": the targets' means (the albedo scalar's role)
-    scale_lines: float
 
     @property
     def n(self) -> int:
@@ -216,14 +250,12 @@ class _Problem:
 
     @property
     def has_lines(self) -> bool:
-        return self.lines is not None and self.config.lambda_lines > 0
+        return bool(self.photos) and self.config.lambda_lines > 0
 
     def part(self, idx: torch.Tensor) -> "_Problem":
         """The same problem for the texels idx."""
-        lines = {k: None if getattr(self, k) is None else getattr(self, k)[:, idx]
-                 for k in ("lines", "lines_f", "lines_weight")}
         return replace(self, pos=self.pos[idx], target=self.target[idx], target_f=self.target_f[idx],
-                       weight=self.weight[idx], **lines)
+                       weight=self.weight[idx], photos=tuple(g.part(idx) for g in self.photos))
 
 
 def _f(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
@@ -257,9 +289,31 @@ def _tensor(name: str, x, ndim: int, device: torch.device) -> torch.Tensor:
     return t
 
 
-def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config: FitConfig) -> _Problem:
-    if config.camera not in rig.cameras:
-        raise ValueError(f"rig {rig.name!r} has no camera {config.camera!r} (it has {list(rig.cameras)})")
+def _photos(name: str, wname: str, camera: str, M, W, n: int, L: int, config: FitConfig, dev,
+            total: int) -> _Photos:
+    """Checked photo measurements M (n, K, 3) (called `name`) under upper-LED weights W (K, L, 3) (`wname`) of
+    `camera`, `total` photos in all groups."""
+    M = _tensor(name, M, 3, dev)
+    W = _tensor(wname, W, 3, dev)
+    if tuple(W.shape[1:]) != (L, 3):
+        raise ValueError(f"{wname} must have shape (K, L_upper, 3) = (K, {L}, 3) (upper LEDs), "
+                         f"got {tuple(W.shape)}")
+    if tuple(M.shape) != (n, W.shape[0], 3):
+        raise ValueError(f"{name} must have shape (N, K, 3) = ({n}, {W.shape[0]}, 3), got {tuple(M.shape)}")
+    if (M < 0).any() or (W < 0).any():
+        raise ValueError(f"{name} and {wname} must be >= 0 (light measurements and LED drive levels)")
+    scale = max(float(M.mean(dtype=torch.float64)), 1e-12)
+    lam = config.lambda_lines * W.shape[0] / total
+    M = M.permute(2, 0, 1).contiguous()
+    return _Photos(camera, M, _f(M, config.loss, scale), _df2(M, config.loss, scale) * (lam / (3 * W.shape[0])),
+                   W.permute(2, 1, 0).contiguous(), scale, lam)
+
+
+def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config: FitConfig,
+             secondary=None) -> _Problem:
+    for cam in (config.camera,) + ((config.secondary_camera,) if secondary is not None else ()):
+        if cam not in rig.cameras:
+            raise ValueError(f"rig {rig.name!r} has no camera {cam!r} (it has {list(rig.cameras)})")
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
     L = upper.size
     intensity = np.asarray(rig.leds.intensity, dtype=np.float64)[upper]
@@ -287,33 +341,25 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
             raise ValueError(f"grid_shape {tuple(grid_shape)} has {R * C} texels but positions has {n} "
                              "(texels in row-major order of the grid)")
     loss = config.loss
-    M = M_f = M_w = W = None
-    scale_lines = 1.0
+    photos = []
+    if secondary is not None and lines is None:
+        raise ValueError("secondary photos need the primary ones (lines) too")
+    total = sum(len(x[1]) for x in ((lines, line_weights), secondary or (None, ())) if x[1] is not None)
     if lines is not None:
-        M = _tensor("lines", lines, 3, dev)
-        W = _tensor("line_weights", line_weights, 3, dev)
-        if tuple(W.shape[1:]) != (L, 3):
-            raise ValueError(f"line_weights must have shape (K, L_upper, 3) = (K, {L}, 3) (upper LEDs), "
-                             f"got {tuple(W.shape)}")
-        if tuple(M.shape) != (n, W.shape[0], 3):
-            raise ValueError(f"lines must have shape (N, K, 3) = ({n}, {W.shape[0]}, 3), got {tuple(M.shape)}")
-        if (M < 0).any() or (W < 0).any():
-            raise ValueError("lines and line_weights must be >= 0 (light measurements and LED drive levels)")
-        scale_lines = max(float(M.mean(dtype=torch.float64)), 1e-12)
-        M = M.permute(2, 0, 1).contiguous()
-        M_f = _f(M, loss, scale_lines)
-        M_w = _df2(M, loss, scale_lines) * (config.lambda_lines / (3 * W.shape[0]))
-        W = W.permute(2, 1, 0).contiguous()
+        photos.append(_photos("lines", "line_weights", config.camera, lines, line_weights, n, L, config, dev, total))
+    if secondary is not None:
+        photos.append(_photos("secondary photos", "their weights", config.secondary_camera, *secondary, n, L, config,
+                              dev, total))
     scale_m = max(float(m.mean(dtype=torch.float64)), 1e-12)
 
     def T(a):
         return torch.as_tensor(a, dtype=torch.float32, device=dev)
 
     s = rig.sample
-    return _Problem(rig, config, pos, m, _f(m, loss, scale_m), _df2(m, loss, scale_m) / (3 * L), M, M_f, M_w,
-                    W, torch.as_tensor(upper, dtype=torch.int64, device=dev),
+    return _Problem(rig, config, pos, m, _f(m, loss, scale_m), _df2(m, loss, scale_m) / (3 * L), tuple(photos),
+                    torch.as_tensor(upper, dtype=torch.int64, device=dev),
                     T(np.stack([intensity / intensity[:, :1], intensity / intensity[:, 1:2]])),
-                    T(np.stack([s.normal, s.x_axis, s.y_axis])), scale_m, scale_lines)
+                    T(np.stack([s.normal, s.x_axis, s.y_axis])), scale_m)
 
 
 # --- numbers <-> GGX parameters ------------------------------------------------------------------------
@@ -329,17 +375,27 @@ def _base_tangent(n: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
     return X * c + torch.linalg.cross(k, X, dim=-1) + k * ((k * X).sum(-1, keepdim=True) / (1 + c))
 
 
-def _geometry(g: torch.Tensor, frame: torch.Tensor, config: FitConfig) -> dict:
-    """(n, 5) numbers [u, v, theta, a_x, a_y] -> normal, tangent (unit, world), alpha_x, alpha_y."""
+def _frame_of(g: torch.Tensor, frame: torch.Tensor) -> dict:
+    """The first 3 geometry numbers [u, v, theta] -> normal, tangent (unit, world)."""
     N, X, Y = frame
     n = _unit(N + g[:, 0:1] * X + g[:, 1:2] * Y)
     t0 = _base_tangent(n, frame)
     th = g[:, 2:3]
     t = torch.cos(th) * t0 + torch.sin(th) * torch.linalg.cross(n, t0, dim=-1)
-    t = _unit(t - (t * n).sum(-1, keepdim=True) * n)
+    return {"normal": n, "tangent": _unit(t - (t * n).sum(-1, keepdim=True) * n)}
+
+
+def _geometry(g: torch.Tensor, frame: torch.Tensor, config: FitConfig) -> dict:
+    """(n, 5) numbers [u, v, theta, a_x, a_y] -> normal, tangent (unit, world), alpha_x, alpha_y, with alpha
+    = exp(log lo + (log hi - log lo) sigmoid(a)) (the neural heads' bounded outputs, and the candidates)."""
     la, lb = (math.log(a) for a in config.alpha_range)
     alpha = torch.exp(la + (lb - la) * torch.sigmoid(g[:, 3:5]))
-    return {"normal": n, "tangent": t, "alpha_x": alpha[:, 0], "alpha_y": alpha[:, 1]}
+    return {**_frame_of(g, frame), "alpha_x": alpha[:, 0], "alpha_y": alpha[:, 1]}
+
+
+def _log_geometry(q: torch.Tensor, frame: torch.Tensor) -> dict:
+    """(n, 5) numbers [u, v, theta, log alpha_x, log alpha_y] (the direct method's) -> the geometry."""
+    return {**_frame_of(q, frame), "alpha_x": torch.exp(q[:, 3]), "alpha_y": torch.exp(q[:, 4])}
 
 
 def _albedo_numbers(raw: torch.Tensor, config: FitConfig) -> dict:
@@ -363,21 +419,37 @@ def _encode_geometry(n, theta, alpha_x, alpha_y, frame, config: FitConfig) -> to
 
 
 # --- the forward model, the albedos, the loss -------------------------------------------------------------
-def _lumitexels(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Tensor) -> torch.Tensor:
-    """(n, L_upper, 3) network units: the twin's Warp forward model (differentiable)."""
+def _lumitexels(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Tensor,
+                camera: str | None = None) -> torch.Tensor:
+    """(n, L_upper, 3) network units seen from `camera` (None: config.camera): the twin's Warp forward model
+    (differentiable)."""
     c = prob.config
     m = twin.lumitexels(prob.rig, prob.pos, geom["normal"], geom["tangent"], rho_d, rho_s, geom["alpha_x"],
-                        geom["alpha_y"], convention="physical", device=c.device, camera=c.camera,
+                        geom["alpha_y"], convention="physical", device=c.device, camera=camera or c.camera,
                         transparency=torch.zeros(prob.n, device=prob.pos.device), visibility=True)
     return m.index_select(1, prob.upper) * LUMITEXEL_SCALE
 
 
-def _bases(prob: _Problem, geom: dict) -> tuple[torch.Tensor, torch.Tensor]:
+def _bases(prob: _Problem, geom: dict, camera: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """D, S (n, L, 3): the lumitexels of unit diffuse and unit specular albedo, from one launch (module
     docstring): rho_d = (1, 0, 0), rho_s = (0, 1, 0); the other channels by the LEDs' intensity ratios."""
     e = torch.eye(3, device=prob.pos.device)
-    m = _lumitexels(prob, geom, e[0].expand(prob.n, 3), e[1].expand(prob.n, 3))
+    m = _lumitexels(prob, geom, e[0].expand(prob.n, 3), e[1].expand(prob.n, 3), camera)
     return m[..., 0:1] * prob.ratio[0], m[..., 1:2] * prob.ratio[1]
+
+
+def _photo_bases(prob: _Problem, geom: dict, D: torch.Tensor, S: torch.Tensor) -> list:
+    """For each photo group (prob.photos): (W D, W S), each (3, n, K), the bases of its camera (D, S for
+    config.camera, one more launch for another) under its weights; [] without photos."""
+    if not prob.has_lines:
+        return []
+    bases = {prob.config.camera: (D, S)}
+    out = []
+    for g in prob.photos:
+        if g.camera not in bases:
+            bases[g.camera] = _bases(prob, geom, g.camera)
+        out.append(tuple(torch.matmul(x.permute(2, 0, 1), g.W) for x in bases[g.camera]))
+    return out
 
 
 def _solve_box(dd, dm, ds, ss, sm, rho_s_max: float):
@@ -401,47 +473,97 @@ def _solve_box(dd, dm, ds, ss, sm, rho_s_max: float):
     return best_a, best_b
 
 
-def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, WD, WS):
-    """(n, 3) rho_d, rho_s in closed form (module docstring) for the bases D, S and their line predictions
-    WD, WS ((3, n, K) or None). Constants for autograd: at the minimiser the loss's gradient w.r.t. them
-    vanishes (exactly for "mse", to first order for "log1p"), so the geometry's gradient needs none."""
+def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: list):
+    """(n, 3) rho_d, rho_s in closed form (module docstring) for the bases D, S and each photo group's
+    predictions (W D, W S) (_photo_bases), and the albedos each photo group is predicted with: config.camera's
+    share the lumitexels' (the result), another camera's photos get their own pair, fitted to them alone (ours:
+    the 45-degree view's texel footprint is ~1.4x longer, so where the colour varies it averages another
+    mixture, and with shared albedos the fit explained that brightness difference between the views by a
+    false specular lobe: fabric alpha 6% -> 78%; with its own albedos that view informs the geometry, the
+    normal, tangent and roughness, only). Constants for autograd: at the minimiser the loss's gradient w.r.t.
+    them vanishes (exactly for "mse", to first order for "log1p"), so the geometry's gradient needs none.
+    Returns (rho_d, rho_s, [(rho_d, rho_s) of each photo group])."""
+    with torch.no_grad():
+        a, b = _solve_box(*(s.double() for s in _albedo_sums(prob, D, S, photo_bases)), prob.config.rho_s_max)
+        albedos = (a.float(), b.float())
+        own = [albedos if g.camera == prob.config.camera else _own_albedos(prob, g, WD, WS)
+               for g, (WD, WS) in zip(prob.photos, photo_bases)]
+    return albedos[0], albedos[1], own
+
+
+def _albedo_sums(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: list) -> list:
+    """The albedo quadratic's sums (dd, dm, ds, ss, sm), each (n, 3), of the lumitexels and config.camera's
+    photos (_solve_box's a^2 dd + 2ab ds + b^2 ss - 2a dm - 2b sm: the loss to second order in the albedos)."""
     with torch.no_grad():
         w, m = prob.weight, prob.target
         wD, wS = w * D, w * S
         sums = [(wD * D).sum(1), (wD * m).sum(1), (wD * S).sum(1), (wS * S).sum(1), (wS * m).sum(1)]
-        if WD is not None:
-            v, M = prob.lines_weight, prob.lines
-            extra = [WD * WD, WD * M, WD * WS, WS * WS, WS * M]
-            sums = [s + (v * e).sum(2).T for s, e in zip(sums, extra)]
-        a, b = _solve_box(*(s.double() for s in sums), prob.config.rho_s_max)
-    return a.float(), b.float()
+        for g, (WD, WS) in zip(prob.photos, photo_bases):
+            if g.camera == prob.config.camera:
+                sums = [s + e for s, e in zip(sums, _photo_terms(g, WD, WS))]
+    return sums
 
 
-def _loss_of(prob: _Problem, m_hat: torch.Tensor, lines_hat: torch.Tensor | None) -> torch.Tensor:
-    """(n,) per-texel loss (module docstring) of predicted lumitexels (n, L, 3) and lines (3, n, K)."""
+def _photo_terms(g: _Photos, WD: torch.Tensor, WS: torch.Tensor) -> list:
+    """A photo group's share of the albedo quadratic's sums (dd, dm, ds, ss, sm), each (n, 3)."""
+    return [(g.M_w * e).sum(2).T for e in (WD * WD, WD * g.M, WD * WS, WS * WS, WS * g.M)]
+
+
+def _own_albedos(prob: _Problem, g: _Photos, WD: torch.Tensor, WS: torch.Tensor) -> tuple:
+    """The closed-form albedos of one photo group alone (_projected)."""
+    with torch.no_grad():
+        return tuple(x.float() for x in _solve_box(*(e.double() for e in _photo_terms(g, WD, WS)),
+                                                   prob.config.rho_s_max))
+
+
+def _loss_of(prob: _Problem, m_hat: torch.Tensor, photos_hat: list) -> torch.Tensor:
+    """(n,) per-texel loss (module docstring) of predicted lumitexels (n, L, 3) and photos (each (3, n, K))."""
     c = prob.config
     out = (_f(m_hat, c.loss, prob.scale_m) - prob.target_f).square().mean(dim=(1, 2))
-    if prob.has_lines:
-        out = out + c.lambda_lines * (_f(lines_hat, c.loss, prob.scale_lines) - prob.lines_f).square().mean(dim=(0, 2))
+    for g, M_hat in zip(prob.photos, photos_hat):
+        out = out + g.lam * (_f(M_hat, c.loss, g.scale) - g.M_f).square().mean(dim=(0, 2))
     return out
 
 
 def _projected_loss(prob: _Problem, geom: dict):
     """The loss of `geom` with its closed-form albedos: (loss (n,), rho_d, rho_s)."""
     D, S = _bases(prob, geom)
-    WD = WS = None
-    if prob.has_lines:
-        WD, WS = (torch.matmul(x.permute(2, 0, 1), prob.W) for x in (D, S))  # (3, n, K)
-    rd, rs = _projected(prob, D, S, WD, WS)
-    lines_hat = None if WD is None else rd.T[:, :, None] * WD + rs.T[:, :, None] * WS
-    return _loss_of(prob, rd[:, None] * D + rs[:, None] * S, lines_hat), rd, rs
+    pb = _photo_bases(prob, geom, D, S)
+    rd, rs, own = _projected(prob, D, S, pb)
+    photos_hat = [a.T[:, :, None] * WD + b.T[:, :, None] * WS for (WD, WS), (a, b) in zip(pb, own)]
+    return _loss_of(prob, rd[:, None] * D + rs[:, None] * S, photos_hat), rd, rs
+
+
+def _residuals(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
+    """(n, 3 L + 3 K) residuals of the direct method's numbers q with their closed-form albedos, scaled so that
+    the sum of their squares is the per-texel loss (_loss_of): (f(m_hat) - f(m)) / sqrt(3 L), then
+    sqrt(lambda / (3 K)) (f(M_hat) - f(M))."""
+    c = prob.config
+    geom = _log_geometry(q, prob.frame)
+    D, S = _bases(prob, geom)
+    pb = _photo_bases(prob, geom, D, S)
+    rd, rs, own = _projected(prob, D, S, pb)
+    m_hat = rd[:, None] * D + rs[:, None] * S
+    out = [(_f(m_hat, c.loss, prob.scale_m) - prob.target_f).reshape(prob.n, -1) / math.sqrt(m_hat[0].numel())]
+    for g, (WD, WS), (a, b) in zip(prob.photos, pb, own):
+        M_hat = a.T[:, :, None] * WD + b.T[:, :, None] * WS
+        r = (_f(M_hat, c.loss, g.scale) - g.M_f).permute(1, 0, 2).reshape(prob.n, -1)
+        out.append(r * math.sqrt(g.lam / M_hat[:, 0].numel()))
+    return torch.cat(out, dim=1)
 
 
 def _rendered_loss(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Tensor) -> torch.Tensor:
     """The loss of explicit parameters (the neural method's)."""
     m_hat = _lumitexels(prob, geom, rho_d, rho_s)
-    lines_hat = torch.matmul(m_hat.permute(2, 0, 1), prob.W) if prob.has_lines else None
-    return _loss_of(prob, m_hat, lines_hat)
+    photos_hat = []
+    for g in prob.photos if prob.has_lines else ():
+        if g.camera == prob.config.camera:
+            photos_hat.append(torch.matmul(m_hat.permute(2, 0, 1), g.W))
+        else:  # another view: its own closed-form albedos (_projected)
+            WD, WS = (torch.matmul(x.permute(2, 0, 1), g.W) for x in _bases(prob, geom, g.camera))
+            a, b = _own_albedos(prob, g, WD, WS)
+            photos_hat.append(a.T[:, :, None] * WD + b.T[:, :, None] * WS)
+    return _loss_of(prob, m_hat, photos_hat)
 
 
 # --- initialisation --------------------------------------------------------------------------------------
@@ -514,32 +636,321 @@ def _result(prob: _Problem, geom: dict, rho_d, rho_s, history, t_start, info) ->
     return FitResult(**out, history=[float(h) for h in history], seconds=time.perf_counter() - t_start, info=info)
 
 
+def _jacobian(prob: _Problem, q: torch.Tensor, r: torch.Tensor, to_numbers=None) -> torch.Tensor:
+    """(n, residuals, 5) forward-difference Jacobian (FitConfig.fd_step) of _residuals at q, whose value is r;
+    with `to_numbers`, of _residuals(to_numbers(q)) (another parameterisation of the same 5 numbers)."""
+    h = prob.config.fd_step
+    eye = torch.eye(GEOMETRY_SIZE, device=q.device) * h
+    f = to_numbers or (lambda x: x)
+    return torch.stack([(_residuals(prob, f(q + eye[j])) - r) / h for j in range(GEOMETRY_SIZE)], 2)
+
+
+def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -> torch.Tensor:
+    """Levenberg-Marquardt on the numbers q (n, 5) = [u, v, theta, log alpha_x, log alpha_y] of every texel at
+    once (texels are independent: each has its own 5 x 5 system and damping mu). The Jacobian of the residuals
+    (_residuals, the closed-form albedos re-solved at every evaluation: variable projection) is taken by
+    forward differences (FitConfig.fd_step), 5 more evaluations of the forward model per iteration. A step is
+    kept where it lowers the texel's loss (then mu / 3), else refused (mu x 4; Marquardt's scaling by the
+    diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing). log alpha is
+    clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
+    FitConfig.tolerance (relative) or whose mu exceeds 1e10 drop out. history[i] += the sum of the losses
+    after iteration i."""
+    c = prob.config
+    lo, hi = (math.log(a) for a in c.alpha_range)
+    q = q.clone()
+    q[:, 3:5] = q[:, 3:5].clamp(lo, hi)
+    with torch.no_grad():
+        r = _residuals(prob, q)
+        loss = r.square().sum(1)
+        mu = torch.full_like(loss, c.lm_damping)
+        active = torch.ones_like(loss, dtype=torch.bool)
+        for i in range(c.steps):
+            idx = torch.nonzero(active).flatten()
+            if idx.numel():
+                part, qa, ra = prob.part(idx), q[idx], r[idx]
+                J = _jacobian(part, qa, ra)
+                A = J.transpose(1, 2) @ J
+                grad = (J.transpose(1, 2) @ ra[..., None])[..., 0]
+                d = torch.diagonal(A, dim1=1, dim2=2)
+                damp = mu[idx, None] * (d + 1e-6 * d.sum(1, keepdim=True) + 1e-20)
+                step = torch.linalg.solve(A + torch.diag_embed(damp), -grad[..., None])[..., 0]
+                qn = qa + step
+                qn[:, 3:5] = qn[:, 3:5].clamp(lo, hi)
+                rn = _residuals(part, qn)
+                ln = rn.square().sum(1)
+                ok = torch.isfinite(ln) & (ln < loss[idx])
+                gain = (loss[idx] - ln) / loss[idx].clamp_min(1e-30)
+                q[idx] = torch.where(ok[:, None], qn, qa)
+                r[idx] = torch.where(ok[:, None], rn, ra)
+                loss[idx] = torch.where(ok, ln, loss[idx])
+                mu[idx] = torch.where(ok, mu[idx] / 3, mu[idx] * 4)
+                active[idx] = ~((ok & (gain < c.tolerance)) | (mu[idx] > 1e10))
+            history[i] += float(loss.sum())
+    return q
+
+
+def _losses(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
+    """(n,) per-texel loss of the direct method's numbers q, in chunks of `batch` texels."""
+    with torch.no_grad():
+        return torch.cat([_residuals(prob.part(i), q[i]).square().sum(1) for i in _chunks(prob, prob.config.batch)])
+
+
+def _propagate(prob: _Problem, q: torch.Tensor, grid_shape) -> tuple[torch.Tensor, int]:
+    """One round of neighbour propagation (ours, as PatchMatch propagates matches): each texel tries the
+    fitted numbers of its 4 grid neighbours; where one lowers its loss by more than 0.1%, Levenberg-Marquardt
+    restarts from it. Why: LM from the initial candidates lands in a local minimum on a few % of the texels
+    of strongly anisotropic or narrow-lobed samples (a rotated tangent, a swapped roughness), isolated texels
+    whose neighbours, of the same material, hold the right basin. Returns (q, texels restarted)."""
+    R, C = (int(v) for v in grid_shape)
+    own = _losses(prob, q)
+    best, best_loss = q.clone(), own.clone()
+    grid = q.reshape(R, C, GEOMETRY_SIZE)
+    rows, cols = torch.arange(R, device=q.device), torch.arange(C, device=q.device)
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        cand = grid[(rows + dr).clamp(0, R - 1)][:, (cols + dc).clamp(0, C - 1)].reshape(-1, GEOMETRY_SIZE)
+        loss = _losses(prob, cand)
+        better = loss < best_loss
+        best, best_loss = torch.where(better[:, None], cand, best), torch.where(better, loss, best_loss)
+    moved = torch.nonzero(best_loss < own * (1 - 1e-3)).flatten()
+    for idx in (moved.split(prob.config.batch or moved.numel()) if moved.numel() else ()):
+        q[idx] = _levenberg_marquardt(prob.part(idx), best[idx], np.zeros(prob.config.steps))
+    return q, int(moved.numel())
+
+
+def _final(prob: _Problem, q: torch.Tensor) -> list:
+    """Per chunk of texels: (geometry, loss, rho_d, rho_s) of the numbers q with their closed-form albedos."""
+    parts = []
+    with torch.no_grad():
+        for idx in _chunks(prob, prob.config.batch):
+            geom = _log_geometry(q[idx], prob.frame)
+            parts.append((geom, *_projected_loss(prob.part(idx), geom)))
+    return parts
+
+
+def _to_tensor(q: torch.Tensor) -> torch.Tensor:
+    """[u, v, theta, log alpha_x, log alpha_y] -> [u, v, m, d cos 2 theta, d sin 2 theta], m and d the mean and
+    half difference of the log alphas: the log roughness tensor's coordinates, which do not depend on which
+    axis is called the tangent (an isotropic lobe is d = 0 at any theta; a lobe and its 90-degree turn with
+    the alphas swapped are one point)."""
+    m, d = (q[:, 3] + q[:, 4]) / 2, (q[:, 3] - q[:, 4]) / 2
+    return torch.stack([q[:, 0], q[:, 1], m, d * torch.cos(2 * q[:, 2]), d * torch.sin(2 * q[:, 2])], 1)
+
+
+def _from_tensor(x: torch.Tensor) -> torch.Tensor:
+    """The inverse of _to_tensor (theta in (-pi/2, pi/2], alpha_x >= alpha_y)."""
+    d = torch.hypot(x[:, 3], x[:, 4])
+    return torch.stack([x[:, 0], x[:, 1], torch.atan2(x[:, 4], x[:, 3]) / 2, x[:, 2] + d, x[:, 2] - d], 1)
+
+
+def _colour_weights(rho_d: torch.Tensor, grid_shape, lam: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The prior's 4-neighbour weights lam w_ij on the grid: (R-1, C) between rows i and i+1, (R, C-1) between
+    columns, w_ij = exp(-mean_c (log(rho_d_i + 0.02) - log(rho_d_j + 0.02))^2 / (2 0.1^2)): 1 within one
+    diffuse colour, ~0 across a change of material (a printed edge, a ring, a stripe)."""
+    R, C = grid_shape
+    logd = torch.log(rho_d.double() + 0.02).reshape(R, C, 3)
+    return (lam * torch.exp(-(logd[1:] - logd[:-1]).square().mean(-1) / (2 * 0.1 ** 2)),
+            lam * torch.exp(-(logd[:, 1:] - logd[:, :-1]).square().mean(-1) / (2 * 0.1 ** 2)))
+
+
+def _laplacian(x: torch.Tensor, weights, grid_shape) -> torch.Tensor:
+    """L_w x for the weighted grid Laplacian of weights (_colour_weights), x (R C, k) row-major:
+    (L_w x)_i = sum_j w_ij (x_i - x_j)."""
+    R, C = grid_shape
+    g = x.reshape(R, C, -1)
+    out = torch.zeros_like(g)
+    for w, dim in zip(weights, (0, 1)):
+        n = g.shape[dim] - 1
+        d = w[..., None] * (g.narrow(dim, 1, n) - g.narrow(dim, 0, n))
+        out.narrow(dim, 1, n).add_(d)
+        out.narrow(dim, 0, n).sub_(d)
+    return out.reshape(x.shape)
+
+
+def _block_pcg(blocks: torch.Tensor, weights, grid_shape, b: torch.Tensor, prior_dims: slice, iterations: int):
+    """Solve (blockdiag(blocks) + L_w on the coordinates prior_dims) x = b by conjugate gradients with the
+    block-Jacobi preconditioner. blocks (n, k, k) SPD, b (n, k). Returns (x, iterations used)."""
+    k = blocks.shape[1]
+    E = torch.zeros(k, device=b.device, dtype=b.dtype)
+    E[prior_dims] = 1.0
+
+    def apply(x):
+        return (blocks @ x[..., None])[..., 0] + E * _laplacian(x, weights, grid_shape)
+
+    deg = _degree(weights, grid_shape).reshape(-1, 1, 1)
+    M_inv = torch.linalg.inv(blocks + deg * torch.diag(E))
+    x = torch.zeros_like(b)
+    r = b.clone()
+    z = (M_inv @ r[..., None])[..., 0]
+    p = z.clone()
+    rz, rr0, it = float((r * z).sum()), float((r * r).sum()), 0
+    while it < iterations and float((r * r).sum()) > 1e-20 * max(rr0, 1e-300):
+        Ap = apply(p)
+        step = rz / float((p * Ap).sum())
+        x += step * p
+        r -= step * Ap
+        z = (M_inv @ r[..., None])[..., 0]
+        rz, rz_old = float((r * z).sum()), rz
+        p = z + (rz / rz_old) * p
+        it += 1
+    return x, it
+
+
+def _degree(weights, grid_shape) -> torch.Tensor:
+    """(R, C) sum_j w_ij of each texel."""
+    R, C = grid_shape
+    w_down, w_right = weights
+    deg = torch.zeros(R, C, dtype=w_down.dtype, device=w_down.device)
+    deg[1:] += w_down
+    deg[:-1] += w_down
+    deg[:, 1:] += w_right
+    deg[:, :-1] += w_right
+    return deg
+
+
+def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_shape) -> tuple[torch.Tensor, dict]:
+    """All texels' numbers at once under a smoothness prior on the roughness (ours, issue #14;
+    FitConfig.alpha_prior = tau). Minimises, over x_i = [u, v, m, c, s] (_to_tensor: the normal's two numbers,
+    the mean log alpha and the anisotropy as a vector at twice the tangent angle, so that neighbours compare
+    lobes, not axis labels),
+        F = sum_i |r_i(x_i)|^2 / sigma^2 + sum_{i~j} w_ij |a_i - a_j|^2 / tau^2,   a = [m, c, s],
+    r_i the texel's residuals (_residuals: its photos and lumitexel, albedos in closed form), sigma^2 their
+    median per-texel variance at the start (this capture's noise and misfit level), i~j 4-neighbours weighted
+    by their diffuse colour's likeness (_colour_weights), by Levenberg-Marquardt on the joint problem: the
+    per-texel 5 x 5 Gauss-Newton blocks coupled by the prior's grid Laplacian, each step solved by block
+    conjugate gradients (_block_pcg). A texel with a clear lobe keeps its own roughness; one whose photos
+    barely see the lobe takes its material's. Why: on the mini rig a rough, weak lobe is 0.5-2% of a photo
+    (issue #14's fabric and paper), about the per-texel noise of the extracted photos (0.4%), so a texel's own
+    fit errs by 15-60% and noise turns an isotropic lobe anisotropic, while the noise-free oracle fit is exact
+    (docs/accuracy.md). The photos of a region are pooled, not its per-texel estimates, which noise biases.
+    Returns (q, info)."""
+    c = prob.config
+    R, C = (int(v) for v in grid_shape)
+    weights = _colour_weights(rho_d, (R, C), 1.0 / c.alpha_prior ** 2)
+    prior_dims = slice(2, 5)
+    x = _to_tensor(q).double()
+    lo, hi = (math.log(v) for v in c.alpha_range)
+
+    def data(x, jac: bool):
+        out = []
+        with torch.no_grad():
+            for idx in _chunks(prob, c.batch):
+                part = prob.part(idx)
+                xi = x[idx].float()
+                r = _residuals(part, _from_tensor(xi))
+                out.append((r, _jacobian(part, xi, r, _from_tensor) if jac else None))
+        r = torch.cat([o[0] for o in out]).double()
+        return r, (torch.cat([o[1] for o in out]).double() if jac else None)
+
+    def prior(x):
+        a = x[:, prior_dims]
+        return float((a * _laplacian(a, weights, (R, C))).sum())  # sum_{i~j} w_ij |a_i - a_j|^2
+
+    r, J = data(x, True)
+    sigma2 = float((r.square().sum(1) / max(r.shape[1] - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
+    F = float(r.square().sum()) / sigma2 + prior(x)
+    F0, mu, kept, cg = F, c.lm_damping, 0, 0
+    for _ in range(c.steps):
+        H = J.transpose(1, 2) @ J / sigma2
+        g = (J.transpose(1, 2) @ r[..., None])[..., 0] / sigma2
+        g[:, prior_dims] += _laplacian(x[:, prior_dims], weights, (R, C))
+        d = torch.diagonal(H, dim1=1, dim2=2)
+        H_damped = H + torch.diag_embed(mu * (d + 1e-6 * d.sum(1, keepdim=True)) + 1e-12)
+        step, it = _block_pcg(H_damped, weights, (R, C), -g, prior_dims, 10 * (R + C))
+        cg += it
+        xn = x + step
+        r_n, _ = data(xn, False)
+        Fn = float(r_n.square().sum()) / sigma2 + prior(xn)
+        if not math.isfinite(Fn) or Fn >= F:
+            mu *= 4
+            if mu > 1e10:
+                break
+            continue
+        gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
+        if gain < c.tolerance:
+            break
+        r, J = data(x, True)
+    out = _from_tensor(x.float())
+    out[:, 3:5] = out[:, 3:5].clamp(lo, hi)
+    return out, {"joint_steps": kept, "joint_cg_iterations": cg, "joint_objective": [F0, F],
+                 "joint_sigma2": sigma2}
+
+
+def _joint_albedos(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, rho_s: torch.Tensor, grid_shape,
+                   sigma2: float) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The albedos of every texel at once for the geometry q, under the same prior on rho_s as the roughness's
+    (_joint_roughness; ours, issue #14): minimises
+        sum_i Q_i(rho_d_i, rho_s_i) / sigma^2 + sum_{i~j} w_ij |rho_s_i - rho_s_j|^2 / (tau rho_ij)^2
+    per channel, Q_i the texel's albedo quadratic (_albedo_sums, the loss to second order), w_ij the colour
+    weights (_colour_weights), rho_ij the pair's mean grey rho_s from its own fit (>= 0.05): a relative change
+    of tau between neighbours of one material. Linear, solved by block conjugate gradients (6 unknowns a
+    texel), then clamped to the boxes. Why: once the roughness is pooled, a weak lobe's rho_s is still each
+    texel's own, and its photos fix it no better than its roughness (fabric: rho_s 10-13%). Returns (rho_d,
+    rho_s, conjugate-gradient iterations)."""
+    c = prob.config
+    R, C = (int(v) for v in grid_shape)
+    sums = []
+    for idx in _chunks(prob, c.batch):
+        part = prob.part(idx)
+        geom = _log_geometry(q[idx], part.frame)
+        D, S = _bases(part, geom)
+        sums.append(_albedo_sums(part, D, S, _photo_bases(part, geom, D, S)))
+    dd, dm, ds, ss, sm = (torch.cat([x[k] for x in sums]).double() / sigma2 for k in range(5))
+    n = R * C
+    H = torch.zeros(n, 6, 6, dtype=torch.float64, device=q.device)
+    ch = torch.arange(3, device=q.device)
+    H[:, ch, ch], H[:, ch, ch + 3], H[:, ch + 3, ch], H[:, ch + 3, ch + 3] = dd, ds, ds, ss
+    H += (1e-9 * torch.diagonal(H, dim1=1, dim2=2).sum(1) + 1e-30)[:, None, None] * torch.eye(6, dtype=H.dtype,
+                                                                                               device=H.device)
+    grey = rho_s.double().mean(1).reshape(R, C)
+    w_down, w_right = _colour_weights(rho_d, (R, C), 1.0 / c.alpha_prior ** 2)
+    scale = [((grey[1:] + grey[:-1]) / 2).clamp_min(0.05) ** 2, ((grey[:, 1:] + grey[:, :-1]) / 2).clamp_min(0.05) ** 2]
+    x, it = _block_pcg(H, (w_down / scale[0], w_right / scale[1]), (R, C), torch.cat([dm, sm], 1), slice(3, 6),
+                       10 * (R + C))
+    return (x[:, :3].clamp(0.0, 1.0).to(rho_d.dtype), x[:, 3:].clamp(0.0, c.rho_s_max).to(rho_s.dtype), it)
+
+
 def _fit_direct(prob: _Problem, grid_shape=None) -> FitResult:
-    """Adam on the 5 geometry numbers per texel with the albedos in closed form at every step (module
-    docstring), minimising the SUM of per-texel losses, in chunks of `batch` texels."""
+    """Levenberg-Marquardt on the 5 geometry numbers per texel from the best initial candidate, with the
+    albedos in closed form at every evaluation (module docstring), in chunks of `batch` texels; then, on a
+    grid (grid_shape given), FitConfig.propagation rounds of neighbour propagation (_propagate)."""
     t_start = time.perf_counter()
     c = prob.config
     history = np.zeros(c.steps)
-    parts, init_s, iter_s = [], 0.0, 0.0
+    q = torch.empty(prob.n, GEOMETRY_SIZE, device=prob.pos.device)
+    init_s = iter_s = 0.0
     for idx in _chunks(prob, c.batch):
         part = prob.part(idx)
         t0 = time.perf_counter()
-        g = _initial(part)[0].requires_grad_(True)
+        with torch.no_grad():
+            g = _initial(part)[0]
+            geom = _geometry(g, part.frame, c)
+            q0 = torch.cat([g[:, :3], torch.log(geom["alpha_x"])[:, None], torch.log(geom["alpha_y"])[:, None]], 1)
         t1 = time.perf_counter()
         init_s += t1 - t0
-        opt = torch.optim.Adam([g], lr=c.learning_rate)
-        for i in range(c.steps):
-            opt.zero_grad(set_to_none=True)
-            loss = _projected_loss(part, _geometry(g, part.frame, c))[0]
-            loss.sum().backward()
-            opt.step()
-            history[i] += float(loss.detach().sum())
+        q[idx] = _levenberg_marquardt(part, q0, history)
         iter_s += time.perf_counter() - t1
-        with torch.no_grad():
-            geom = _geometry(g, part.frame, c)
-            parts.append((geom, *_projected_loss(part, geom)))
+    t2 = time.perf_counter()
+    restarted = []
+    for _ in range(c.propagation if grid_shape is not None else 0):
+        q, moved = _propagate(prob, q, grid_shape)
+        restarted.append(moved)
+        if not moved:
+            break
+    t3 = time.perf_counter()
+    parts = _final(prob, q)
+    prior = {}
+    if grid_shape is not None and c.alpha_prior is not None:
+        q, prior = _joint_roughness(prob, q, torch.cat([p[2] for p in parts]), grid_shape)
+        parts = _final(prob, q)
+        rd, rs, prior["albedo_cg_iterations"] = _joint_albedos(prob, q, torch.cat([p[2] for p in parts]),
+                                                               torch.cat([p[3] for p in parts]), grid_shape,
+                                                               prior["joint_sigma2"])
+        sizes = [len(p[2]) for p in parts]
+        parts = [(g, loss, a, b) for (g, loss, _, _), a, b in zip(parts, rd.split(sizes), rs.split(sizes))]
     geom = {k: torch.cat([p[0][k] for p in parts]) for k in parts[0][0]}
     info = {"init_seconds": init_s, "seconds_per_iteration": iter_s / max(c.steps, 1),
+            "propagation_seconds": t3 - t2, "propagation_restarts": restarted,
+            "joint_seconds": time.perf_counter() - t3, **prior,
             "texel_loss": torch.cat([p[1] for p in parts]).cpu().numpy()}
     return _result(prob, geom, torch.cat([p[2] for p in parts]), torch.cat([p[3] for p in parts]),
                    history / prob.n, t_start, info)
@@ -636,27 +1047,29 @@ FITTING_METHODS = {"direct": _fit_direct, "neural": _fit_neural}
 
 
 def fit_method(rig, positions, lumitexels, *, method: str | None = None, lines=None, line_weights=None,
-               grid_shape=None, config: FitConfig = FitConfig()) -> FitResult:
+               secondary=None, grid_shape=None, config: FitConfig = FitConfig()) -> FitResult:
     """Dispatch to FITTING_METHODS[method] (None: config.method) after checking the inputs (fit_ggx)."""
     if not isinstance(config, FitConfig):
         raise ValueError(f"config must be a FitConfig, got {type(config).__name__}")
     if method is not None and method != config.method:
         config = replace(config, method=method)
-    prob = _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config)
+    prob = _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config, secondary)
     return FITTING_METHODS[config.method](prob, grid_shape)
 
 
-def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, grid_shape=None,
+def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, secondary=None, grid_shape=None,
             config: FitConfig = FitConfig()) -> FitResult:
     """Fit anisotropic GGX and the local frame per texel (module docstring) with config.method.
 
     positions (N, 3) mm, world; lumitexels (N, L_upper, 3) in network units (upper LEDs in rig order,
     np.flatnonzero(~rig.is_bottom)), torch or numpy, >= 0; lines (N, K, 3) network units with
-    line_weights (K, L_upper, 3) (the upper-LED part of the line patterns' weights), optional together;
-    grid_shape (R, C) with N = R C in row-major order, needed by method "neural". Raises ValueError on
+    line_weights (K, L_upper, 3) (the upper-LED part of the line patterns' weights), optional together: any
+    photos of config.camera under patterns (the linear lights, the learned patterns' + and - frames);
+    secondary (photos (N, K2, 3), weights (K2, L_upper, 3)) the same for config.secondary_camera (optional;
+    each camera's photos weigh lambda_lines in the loss); grid_shape (R, C) with N = R C in row-major order, needed by method "neural". Raises ValueError on
     NaN/Inf or mis-shaped input. Deterministic on the CPU: the same inputs and seed give the same result."""
-    return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, grid_shape=grid_shape,
-                      config=config)
+    return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary,
+                      grid_shape=grid_shape, config=config)
 
 
 # --- export ----------------------------------------------------------------------------------------------

@@ -322,6 +322,9 @@ class Threshold:
     op: str
     value: float
     why: str
+    # a dotted key to a count of what the metric is taken over (e.g. "maps.tangent_deg.count"): where it is 0
+    # the condition does not apply (a sample with no anisotropic texel has no tangent to get wrong)
+    applies_if: str | None = None
 
     def __post_init__(self):
         if not isinstance(self.metric, str) or not self.metric.strip():
@@ -356,12 +359,17 @@ def _lookup(metrics: dict, key: str):
 
 def check(metrics: dict, thresholds) -> list[dict]:
     """One row per threshold: {"metric", "value", "op", "threshold", "passed", "why"}. A metric that is
-    absent (value None) or not finite (NaN, ±inf) fails."""
+    absent (value None) or not finite (NaN, ±inf) fails, unless the threshold's `applies_if` count is 0
+    (then the row passes and says why)."""
     rows = []
     for th in thresholds:
         if not isinstance(th, Threshold):
             raise TypeError(f"expected Threshold, got {type(th).__name__}")
         v = _lookup(metrics, th.metric)
+        if th.applies_if is not None and _lookup(metrics, th.applies_if) == 0:
+            rows.append({"metric": th.metric, "value": v, "op": th.op, "threshold": th.value, "passed": True,
+                         "why": f"not applicable: {th.applies_if} is 0"})
+            continue
         ok = v is not None and math.isfinite(v) and (v <= th.value if th.op == "<=" else v >= th.value)
         rows.append({"metric": th.metric, "value": v, "op": th.op, "threshold": th.value, "passed": bool(ok),
                      "why": th.why})

@@ -45,6 +45,7 @@ class ReconstructionFolder:
     def write_measurements(self, meas) -> None:
         g = meas.grid
         self._npz(MEASUREMENTS, learned=meas.learned, lines=meas.lines, line_weights=meas.line_weights,
+                  learned_photos=meas.learned_photos, learned_weights=meas.learned_weights,
                   transparency=meas.transparency, valid=meas.valid, pixel_primary=meas.pixel_primary,
                   pixel_secondary=meas.pixel_secondary, grid=np.array([g.resolution, g.size_mm], np.float64))
 

@@ -35,6 +35,7 @@ class ReconstructConfig:
     # the line photo left out of fine-tuning for validation (the paper holds out 1 of 64, unnamed);
     # None: the brightest line over the sample (a dim line would score the sensor's noise, not the model)
     holdout_line: int | None = None
+    anti_alias: bool = False  # the reference's anti-aliasing blur before sampling (reconstruction.extraction, step 2)
     network: str = "pretrained"    # "pretrained" (shipped for this rig) or a `hemicube train` run folder
     device: str = "cpu"
     align: AlignConfig = field(default_factory=AlignConfig)
@@ -118,7 +119,7 @@ def _reconstruct_into(out: ReconstructionFolder, session, rig, config: Reconstru
 
     t = stage("extraction")
     grid = texture_grid(session, rig, config.resolution, config.size_mm)
-    meas = extract(session, rig, grid, alignment, progress=progress)
+    meas = extract(session, rig, grid, alignment, anti_alias=config.anti_alias, progress=progress)
     if not meas.valid.all():  # the grid lies inside the sample, which both views see whole
         raise ValueError(f"{session.dir}: {int((~meas.valid).sum())} of the {grid.resolution}^2 texels are not seen "
                          "by both cameras (or their photos are not finite); choose a smaller --size-mm")
@@ -144,8 +145,15 @@ def _reconstruct_into(out: ReconstructionFolder, session, rig, config: Reconstru
     t = stage("fitting")
     lumi = decode_rgb(model, ft.latent)
     keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
-    fit = fit_ggx(rig, grid.positions(rig), lumi, lines=meas.lines[:, keep], line_weights=meas.line_weights[keep],
-                  grid_shape=grid.shape, config=replace(config.fit, device=config.device))
+    # the fit's measured photos (ours, issue #14): the kept lines and the 64 learned-pattern photos of the primary
+    # view, and those of the secondary view: the learned patterns light many LEDs at once, so they sample narrow
+    # lobes between the lines, and the 45-degree view sees the grazing half-angles where Fresnel lifts a weak
+    # specular lobe (docs/accuracy.md: ceramic alpha 21% -> 12% with the primary photos, ...)
+    photos = np.concatenate([meas.lines[:, keep], meas.learned_photos[:, 0]], axis=1)
+    weights = np.concatenate([meas.line_weights[keep], meas.learned_weights], axis=0)
+    fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
+                  secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,
+                  config=replace(config.fit, device=config.device))
     timings["fitting_s"] = time.perf_counter() - t
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
                    name=f"reconstruction of {session.sample}")

@@ -104,7 +104,8 @@ GOALS = {
     "mini": [
         Threshold("alignment.median_px", "<=", 0.5, "goal: half a pixel"),
         Threshold("maps.normal_deg.median", "<=", 1.0, "goal"),
-        Threshold("maps.tangent_deg.median", "<=", 5.0, "goal, where alpha_x/alpha_y >= 1.5"),
+        Threshold("maps.tangent_deg.median", "<=", 5.0, "goal, where alpha_x/alpha_y >= 1.5",
+                  applies_if="maps.tangent_deg.count"),
         Threshold("maps.alpha_x_pct.median", "<=", 10.0, "goal"),
         Threshold("maps.alpha_y_pct.median", "<=", 10.0, "goal"),
         Threshold("maps.rho_d_pct.median", "<=", 3.0, "goal"),

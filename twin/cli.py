@@ -327,9 +327,11 @@ def cmd_samples_list(args) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
-    print(f"{'sample':<16} {'rho_d':>13} {'rho_s':>13} {'alpha':>13} {'ax/ay':>7} {'tilt':>6}  character")
+    print(f"{'sample':<14} {'rho_d':>13} {'rho_s':>13} {'alpha_x':>13} {'alpha_y':>13} {'ax/ay':>9} {'tilt':>6}"
+          "  character")
     for name, r in rows.items():
-        print(f"{name:<16} {r['rho_d'][0]:5.3f}-{r['rho_d'][1]:<6.3f} {r['rho_s'][0]:5.2f}-{r['rho_s'][1]:<6.2f} "
-              f"{r['alpha'][0]:5.3f}-{r['alpha'][1]:<6.3f} {r['anisotropy_max']:7.1f} {r['tilt_max_deg']:5.1f}°  "
-              f"{r['description']}")
+        ax, ay, an = r["alpha_x"], r["alpha_y"], r["anisotropy"]
+        print(f"{name:<14} {r['rho_d'][0]:5.3f}-{r['rho_d'][1]:<6.3f} {r['rho_s'][0]:5.2f}-{r['rho_s'][1]:<6.2f} "
+              f"{ax[0]:5.3f}-{ax[1]:<6.3f} {ay[0]:5.3f}-{ay[1]:<6.3f} {an[0]:3.1f}-{an[1]:<4.1f} "
+              f"{r['tilt_deg'][1]:5.1f}°  {r['description']}")
     return 0

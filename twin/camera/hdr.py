@@ -8,8 +8,20 @@ Per frame k (exposure t_k, electrons per DN g at the common `gain_db`), at every
 
     e_k = (DN_k - black) * g - dark_current * t_k          electrons, dark signal removed
     L_k = e_k / (electrons_per_radiance_s * t_k)           the frame's radiance estimate
-    valid_k = DN_k < threshold                             threshold = black + (1 - margin) * e_sat / g,
-                                                           e_sat = min(full well, ADC range in electrons)
+    valid_k: frame k is used where its own DN_k < threshold AND, for all but the shortest frame used, the
+             mean that the shorter frames already used predict for it stays EXCLUSION_Z (4) standard
+             deviations below the threshold: mu_k = L~ k t_k + dark t_k, L~ = sum e / sum k t over those
+             frames, sd_k^2 = mu_k (1 + k t_k / sum k t) + read_noise^2 + g^2 / 12 (this frame's noise and the
+             prediction's), threshold = black + (1 - margin) * e_sat / g, e_sat = min(full well, ADC range)
+
+Why the prediction (ours, issue #14): excluding a frame only when its OWN reading crosses the threshold
+truncates that frame's noise where its mean lies within ~2 sigma of the threshold and biased those sites
+low by up to 0.8 sigma x its weight share (-0.4% measured, tests/test_hdr.py). In a capture that band is
+where bright texels of a photo sit in its middle frame, photo by photo, so the bias varied with the light:
+on bright, weakly specular samples (ρs/ρd ~ 0.2/0.85: the lobe is 0.5% of a photo) it moved the fitted
+roughness by 35% (docs/accuracy.md). The decision from the shorter frames uses noise independent of frame
+k's, so a frame kept is unbiased; its cost is the top ~10% of each frame's range (its most precise readings)
+where the shorter frames' estimate cannot rule saturation out.
 
 The frames are combined with inverse-variance weights. The variance model of one frame is
 
@@ -37,10 +49,9 @@ the same bytes; `merge_hdr_device` keeps the result there (the capture's photos 
 files), `merge_hdr` takes and returns numpy. `merge_hdr_numpy` is the numpy implementation this module had
 before: the kernels' oracle (tests/test_hdr.py) and the same-work baseline of `hemicube bench capture`.
 
-Known limitation (measured in tests/test_hdr.py): excluding a frame only when its own reading crosses
-the threshold truncates that frame's noise for photosites whose mean lies within ~2 sigma of the
-threshold, biasing them low by at most ~0.8 sigma of that frame (about 1% at full well) times its weight
-share; photosites away from that band are unbiased.
+Remaining truncation: the shortest frame used is still excluded by its own reading, which matters only where
+it sits within ~2 sigma of the threshold, i.e. where every frame saturates but the shortest; and a kept frame
+whose own reading crosses the threshold (probability ~3e-5 at EXCLUSION_Z = 4) is dropped.
 """
 from __future__ import annotations
 
@@ -58,6 +69,7 @@ wp.set_module_options({"fast_math": False, "fuse_fp": False})
 
 DEFAULT_MARGIN = 0.05  # frames above 95% of the saturation signal are excluded
 MAX_FRAMES = 16  # frames per merge (the plan's brackets have 3)
+EXCLUSION_Z = 4.0  # a longer frame is used only where the shorter ones predict it EXCLUSION_Z sd below saturation
 
 
 @dataclass(frozen=True)
@@ -106,12 +118,15 @@ class MergeConsts:
     frames: int
     exposure: wp.types.vector(length=MAX_FRAMES, dtype=wp.float64)
     shortest: int
+    order: wp.types.vector(length=MAX_FRAMES, dtype=wp.int32)  # frames by ascending exposure (stable)
     black: wp.float64
     g: wp.float64  # electrons per DN
     dark: wp.float64  # electrons per second
     ke: wp.float64  # electrons per radiance-second
     threshold: wp.float64  # DN: at or above, the frame is saturated at this site
     const_var: wp.float64  # read noise^2 + g^2 / 12
+    e_threshold: wp.float64  # electrons above black at the threshold: (threshold - black) * g
+    z: wp.float64  # EXCLUSION_Z
 
 
 @wp.func
@@ -119,20 +134,35 @@ def _frame_radiance(dn: wp.float64, t: wp.float64, k: MergeConsts):
     return ((dn - k.black) * k.g - k.dark * t) / (k.ke * t)
 
 
+@wp.func
+def _use_frame(r: wp.float64, t: wp.float64, e_acc: wp.float64, kt_acc: wp.float64, k: MergeConsts):
+    """Whether a frame whose DN is r and exposure t is used, given the electrons e_acc and k t sum kt_acc of
+    the shorter frames used so far (module docstring: valid_k)."""
+    if r >= k.threshold:
+        return False
+    if kt_acc <= wp.float64(0.0):
+        return True
+    kt = k.ke * t
+    mu = wp.max(e_acc / kt_acc, wp.float64(0.0)) * kt + k.dark * t
+    sd = wp.sqrt(mu * (wp.float64(1.0) + kt / kt_acc) + k.const_var)
+    return mu + k.z * sd < k.e_threshold
+
+
 @wp.kernel
 def merge_kernel(raw: wp.array3d(dtype=wp.uint16), k: MergeConsts, mosaic: wp.array2d(dtype=wp.float64),
                  weights_sum: wp.array2d(dtype=wp.float32), used: wp.array2d(dtype=wp.uint8),
                  saturated: wp.array2d(dtype=wp.uint8), saturated_count: wp.array(dtype=int)):
-    """One photosite: the pilot estimate from all valid frames, then the inverse-variance merge (module
-    docstring; the numpy twin is merge_hdr_numpy)."""
+    """One photosite: the frames used, shortest first, and the pilot estimate from them; then the
+    inverse-variance merge of the same frames (module docstring; the numpy twin is merge_hdr_numpy)."""
     i, j = wp.tid()
     zero = wp.float64(0.0)
     e_sum = zero
     kt_sum = zero
-    for f in range(k.frames):
+    for o in range(k.frames):
+        f = k.order[o]
         r = wp.float64(raw[f, i, j])
-        if r < k.threshold:
-            t = k.exposure[f]
+        t = k.exposure[f]
+        if _use_frame(r, t, e_sum, kt_sum, k):
             e_sum += (r - k.black) * k.g - k.dark * t
             kt_sum += k.ke * t
     L0 = zero
@@ -141,11 +171,16 @@ def merge_kernel(raw: wp.array3d(dtype=wp.uint16), k: MergeConsts, mosaic: wp.ar
     num = zero
     wsum = zero
     n = int(0)
-    for f in range(k.frames):
+    e_acc = zero  # the same decisions again, in the same order
+    kt_acc = zero
+    for o in range(k.frames):
+        f = k.order[o]
         r = wp.float64(raw[f, i, j])
-        if r < k.threshold:
-            t = k.exposure[f]
+        t = k.exposure[f]
+        if _use_frame(r, t, e_acc, kt_acc, k):
             kt = k.ke * t
+            e_acc += (r - k.black) * k.g - k.dark * t
+            kt_acc += kt
             w = kt * kt / (L0 * kt + k.dark * t + k.const_var)
             num += w * _frame_radiance(r, t, k)
             wsum += w
@@ -218,13 +253,17 @@ def _merge_consts(ts: list[float], sensor: SensorParams, gain_db: float, margin:
     k.cfa = wp.vec4i(*[int(v) for v in cfa_table(sensor.bayer).ravel()])
     k.frames = len(ts)
     k.exposure = wp.types.vector(length=MAX_FRAMES, dtype=wp.float64)(*(ts + [1.0] * (MAX_FRAMES - len(ts))))
-    k.shortest = int(np.argsort(ts, kind="stable")[0])
+    order = [int(v) for v in np.argsort(ts, kind="stable")]
+    k.shortest = order[0]
+    k.order = wp.types.vector(length=MAX_FRAMES, dtype=wp.int32)(*(order + [0] * (MAX_FRAMES - len(ts))))
     k.black = float(sensor.black_level_dn)
     k.g = float(g)
     k.dark = float(sensor.dark_current_e_per_s)
     k.ke = float(sensor.electrons_per_radiance_s)
     k.threshold = float(saturation_threshold_dn(sensor, gain_db, margin))
     k.const_var = float(sensor.read_noise_e ** 2 + g * g / 12.0)
+    k.e_threshold = float((k.threshold - k.black) * g)
+    k.z = EXCLUSION_Z
     return k
 
 
@@ -308,16 +347,26 @@ def merge_hdr_numpy(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.
     thr = saturation_threshold_dn(sensor, gain_db, margin)
     order = np.argsort(ts, kind="stable")
 
-    # pass 1: pilot radiance from all valid frames (sum of electrons / sum of exposures)
-    e_sum = np.zeros(shape)
-    kt_sum = np.zeros(shape)
-    valid = []
-    for r, t in zip(raws, ts):
-        v = r < thr
-        valid.append(v)
-        e = (r.astype(np.float64) - sensor.black_level_dn) * g - sensor.dark_current_e_per_s * t
-        e_sum += np.where(v, e, 0.0)
-        kt_sum += np.where(v, ke * t, 0.0)
+    const_var = sensor.read_noise_e ** 2 + g * g / 12.0
+    e_thr = (thr - sensor.black_level_dn) * g
+
+    def used_frames():  # (frame, its mask of use), shortest first (merge_kernel's _use_frame)
+        e_acc, kt_acc = np.zeros(shape), np.zeros(shape)
+        for f in order:
+            r, t = raws[f], ts[f]
+            kt = ke * t
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mu = np.maximum(e_acc / kt_acc, 0.0) * kt + sensor.dark_current_e_per_s * t
+                sd = np.sqrt(mu * (1.0 + kt / kt_acc) + const_var)
+            v = (r < thr) & ((kt_acc <= 0) | (mu + EXCLUSION_Z * sd < e_thr))
+            e = (r.astype(np.float64) - sensor.black_level_dn) * g - sensor.dark_current_e_per_s * t
+            e_acc += np.where(v, e, 0.0)
+            kt_acc += np.where(v, kt, 0.0)
+            yield f, v, e_acc, kt_acc
+
+    # pass 1: pilot radiance from the frames used (sum of electrons / sum of exposures)
+    for _, _, e_sum, kt_sum in used_frames():
+        pass
     with np.errstate(invalid="ignore", divide="ignore"):
         L0 = np.maximum(np.where(kt_sum > 0, e_sum / kt_sum, 0.0), 0.0)
 
@@ -325,8 +374,8 @@ def merge_hdr_numpy(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.
     num = np.zeros(shape)
     wsum = np.zeros(shape)
     used = np.zeros(shape, dtype=np.uint8)
-    const_var = sensor.read_noise_e ** 2 + g * g / 12.0
-    for r, t, v in zip(raws, ts, valid):
+    for f, v, _, _ in used_frames():
+        r, t = raws[f], ts[f]
         kt = ke * t
         var_e = L0 * kt + sensor.dark_current_e_per_s * t + const_var
         w = np.where(v, kt * kt / var_e, 0.0)

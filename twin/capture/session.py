@@ -107,6 +107,10 @@ class CaptureSession:
     def sample(self) -> str:
         return self.header.get("sample", "a capture")
 
+    def shown_patterns(self, camera_index: int = 0) -> dict[int, str]:
+        """Photo index -> the name of the pattern it was taken under (the manifest's plan), for one camera."""
+        return {p["index"]: p["pattern"] for p in self.header.get("plan", []) if p["camera_index"] == camera_index}
+
     def verified(self, rel: str) -> bool:
         p = self.dir / rel
         return rel in self.files and p.is_file() and file_sha256(p) == self.files[rel]

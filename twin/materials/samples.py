@@ -5,8 +5,9 @@
     write_maps(maps, directory, overwrite=False)             read_maps(directory, size_mm=None)
     canonical_anisotropy(maps) -> maps with αx ≥ αy (the reference's export convention)
     builtin_sample(name, resolution=128, seed=0, size_mm=120.0)   BUILTIN_SAMPLES = ("ramps", "brushed_metal",
-                                                                                    "satin_weave")
-    load_sample(name_or_dir, resolution=128) -> SVBRDFMaps
+                                          "satin_weave") + the material suite (twin.materials.suite: satin, wood,
+                                          paper, metal, leather, ceramic, woven, fabric, wallpaper, quadrants)
+    load_sample(name_or_dir, resolution=128) -> SVBRDFMaps      (a name, "NAME@SEED" or a map folder)
 
 Parameters (per texel, all float32)
     rho_d (H, W, 3)        diffuse albedo ρd ∈ [0, 1] (linear RGB)
@@ -47,6 +48,8 @@ import tomli_w
 
 from twin.atomic import atomic_folder
 from twin.materials.exr import ExrError, check_finite, read_rgb_exr, write_rgb_exr
+from twin.materials.fields import grid_uv, streak_noise, unit_rows
+from twin.materials.suite import BUILDERS as SUITE_BUILDERS, SUITE_SAMPLES, summary
 
 SAMPLE_FORMAT = "hemicube-sample"
 SAMPLE_FORMAT_VERSION = 1
@@ -390,7 +393,7 @@ def read_maps(directory: str | os.PathLike, size_mm: float | None = None) -> SVB
 # --- built-in samples ------------------------------------------------------------------------------
 
 BUILTIN_SAMPLES = ("ramps", "brushed_metal", "satin_weave")
-SUITE = BUILTIN_SAMPLES  # `hemicube validate --suite`: the samples every threshold must hold on
+SUITE = SUITE_SAMPLES  # `hemicube validate --suite`: the samples every threshold must hold on (issue #14)
 MIN_RESOLUTION = 16
 MAX_RESOLUTION = 8192
 
@@ -475,28 +478,6 @@ def _ramps(res: int, seed: int, size_mm: float) -> dict:
     return dict(rho_d=rho_d, rho_s=rho_s, alpha=alpha, normal=normal, tangent=tangent, transparency=beta)
 
 
-def _streak_noise(rng: np.random.Generator, res: int, psi: np.ndarray) -> np.ndarray:
-    """Fine 1-D noise in [−1, 1] as a function of the streak coordinate psi (units of the sample side):
-    three octaves (about ½, 2 and 16 texels across) of linearly interpolated white noise."""
-    lo, hi = float(psi.min()) - 1e-6, float(psi.max()) + 1e-6
-    out = np.zeros_like(psi)
-    for spacing, weight in ((0.5, 0.5), (2.0, 0.3), (16.0, 0.2)):
-        h = spacing / res
-        knots = np.arange(lo, hi + 2 * h, h)
-        out += weight * np.interp(psi, knots, rng.uniform(-1.0, 1.0, knots.size))
-    return out / max(float(np.abs(out).max()), 1e-12)
-
-
-def _unit_rows(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _grid(res: int) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised texel-centre coordinates u (along x, columns) and v (along y, rows) in (0, 1), (H, W)."""
-    c = (np.arange(res) + 0.5) / res
-    return np.meshgrid(c, c, indexing="xy")  # u[i, j] = c[j], v[i, j] = c[i]
-
-
 def _brushed_metal(res: int, seed: int, size_mm: float) -> dict:
     """brushed_metal: grey steel with a slowly curving brushing direction (seeded global angle and two
     sine undulations of the brush lines, ≤ ~25° of bend). The tangent (αx axis, the larger roughness) is
@@ -506,7 +487,7 @@ def _brushed_metal(res: int, seed: int, size_mm: float) -> dict:
     tilted across the streaks by < 2.5° (streak noise). All noise is constant along the brush lines
     (streaks) and varies at the texel scale across them."""
     rng = np.random.default_rng([seed, 1])
-    u, v = _grid(res)
+    u, v = grid_uv(res)
     phi0 = rng.uniform(0.0, np.pi)
     (a1, a2), (f1, f2) = (0.04, 0.015), (1.0, 2.3)
     p1, p2 = rng.uniform(0.0, 2 * np.pi, 2)
@@ -516,15 +497,15 @@ def _brushed_metal(res: int, seed: int, size_mm: float) -> dict:
     k1, k2 = 2 * np.pi * f1, 2 * np.pi * f2
     psi = yr - a1 * np.sin(k1 * xr + p1) - a2 * np.sin(k2 * xr + p2)  # constant along a brush line
     slope = a1 * k1 * np.cos(k1 * xr + p1) + a2 * k2 * np.cos(k2 * xr + p2)  # dyr/dxr along the line
-    dr = _unit_rows(np.stack([np.ones_like(slope), slope], -1))
+    dr = unit_rows(np.stack([np.ones_like(slope), slope], -1))
     d = np.stack([c * dr[..., 0] - s * dr[..., 1], s * dr[..., 0] + c * dr[..., 1], np.zeros_like(slope)], -1)
-    g_rs, g_ax, g_ay, g_n, g_d = (_streak_noise(rng, res, psi) for _ in range(5))
+    g_rs, g_ax, g_ay, g_n, g_d = (streak_noise(rng, res, psi) for _ in range(5))
     rho_d = (0.02 + 0.005 * g_d)[..., None] * np.ones(3)
     rho_s = (5.0 + 0.7 * g_rs)[..., None] - np.array([0.0, 0.08, 0.2])
     alpha = np.stack([0.30 + 0.05 * g_ax, 0.03 + 0.01 * g_ay], -1)
     across = np.cross([0.0, 0.0, 1.0], d)  # in-plane, perpendicular to the brushing
-    normal = _unit_rows(np.array([0.0, 0.0, 1.0]) + np.tan(np.radians(2.5)) * g_n[..., None] * across)
-    tangent = _unit_rows(across - np.einsum("ijk,ijk->ij", across, normal)[..., None] * normal)
+    normal = unit_rows(np.array([0.0, 0.0, 1.0]) + np.tan(np.radians(2.5)) * g_n[..., None] * across)
+    tangent = unit_rows(across - np.einsum("ijk,ijk->ij", across, normal)[..., None] * normal)
     return dict(rho_d=rho_d, rho_s=rho_s, alpha=alpha, normal=normal, tangent=tangent,
                 transparency=np.zeros((res, res)))
 
@@ -576,8 +557,8 @@ def _satin_weave(res: int, seed: int, size_mm: float) -> dict:
     dir_along = np.where(warp[..., None], ey, ex)
     slope = across[..., None] * dir_across + 0.6 * along[..., None] * dir_along
     slope /= np.maximum(1.0, np.linalg.norm(slope, axis=-1, keepdims=True))
-    normal = _unit_rows(np.array([0.0, 0.0, 1.0]) + np.tan(np.radians(15.0)) * slope)
-    tangent = _unit_rows(dir_along - np.einsum("ijk,ijk->ij", dir_along, normal)[..., None] * normal)
+    normal = unit_rows(np.array([0.0, 0.0, 1.0]) + np.tan(np.radians(15.0)) * slope)
+    tangent = unit_rows(dir_along - np.einsum("ijk,ijk->ij", dir_along, normal)[..., None] * normal)
     edge_i, edge_j = (ii % p) == p - 1, (jj % p) == p - 1
     gap = edge_i & edge_j
     beta = np.where(gap, 0.35 + 0.1 * rng.uniform(-1, 1, (res, res)), 0.0)
@@ -587,10 +568,14 @@ def _satin_weave(res: int, seed: int, size_mm: float) -> dict:
 
 
 _BUILDERS = {"ramps": _ramps, "brushed_metal": _brushed_metal, "satin_weave": _satin_weave}
+# the material suite (issue #14): one sample per OpenSVBRDF category and `quadrants` (twin.materials.suite)
+_BUILDERS.update(SUITE_BUILDERS)
+BUILTIN_SAMPLES = BUILTIN_SAMPLES + SUITE_SAMPLES
 # one line per built-in sample for `hemicube samples list` (the builders' docstrings say the rest)
 CHARACTER = {"ramps": "one parameter ramped per region (cf. Fig. 13)",
              "brushed_metal": "dark steel, brushed: strong anisotropy along curving streaks",
-             "satin_weave": "5-harness satin: two orthogonal thread families, bumps, gaps"}
+             "satin_weave": "5-harness satin: two orthogonal thread families, bumps, gaps",
+             **{name: summary(name) for name in SUITE_SAMPLES}}
 
 
 def _integer(value, what: str) -> int:
@@ -628,27 +613,37 @@ def builtin_sample(name: str, resolution: int = 128, seed: int = 0,
 builtin_sample.__doc__ += "\n\n" + "\n\n".join(f"{k}: {_BUILDERS[k].__doc__}" for k in BUILTIN_SAMPLES)
 
 
+def parameter_ranges(maps: SVBRDFMaps) -> dict:
+    """What the maps span: (min, max) of ρd and ρs (over texels and channels), αx and αy and αx/αy (in the
+    export convention αx ≥ αy, canonical_anisotropy), the normal's tilt from +z (degrees) and the transparency."""
+    m = canonical_anisotropy(maps)
+    ax, ay = m.alpha[..., 0].astype(np.float64), m.alpha[..., 1].astype(np.float64)
+    tilt = np.degrees(np.arccos(np.clip(m.normal[..., 2].astype(np.float64), -1.0, 1.0)))
+
+    def span(a):
+        return (float(np.min(a)), float(np.max(a)))
+
+    return {"rho_d": span(m.rho_d), "rho_s": span(m.rho_s), "alpha_x": span(ax), "alpha_y": span(ay),
+            "anisotropy": span(ax / ay), "tilt_deg": span(tilt), "transparency": span(m.transparency)}
+
+
 def sample_ranges(name: str, resolution: int = 64, seed: int = 0) -> dict:
-    """What `hemicube samples list` shows of a built-in sample: each parameter's range over its texels (at
-    `resolution`, `seed`), the largest anisotropy max(αx/αy, αy/αx), the largest normal tilt (°) from the
-    sample plane's normal (+z), and a one-line character."""
-    m = builtin_sample(name, resolution, seed)
-    a = m.alpha.astype(np.float64)
-    tilt = np.degrees(np.arccos(np.clip(m.normal[..., 2].astype(np.float64), -1, 1)))
-
-    def span(x):
-        return [round(float(x.min()), 4), round(float(x.max()), 4)]
-
-    return {"rho_d": span(m.rho_d), "rho_s": span(m.rho_s), "alpha": span(a),
-            "anisotropy_max": round(float((a.max(-1) / a.min(-1)).max()), 2),
-            "tilt_max_deg": round(float(tilt.max()), 1), "description": CHARACTER[name]}
+    """What `hemicube samples list` shows of a built-in sample: parameter_ranges at `resolution` and `seed`
+    (rounded) and a one-line character."""
+    r = parameter_ranges(builtin_sample(name, resolution, seed))
+    return {**{k: [round(v[0], 4), round(v[1], 4)] for k, v in r.items()}, "description": CHARACTER[name]}
 
 
 def load_sample(name_or_dir, resolution: int = 128) -> SVBRDFMaps:
-    """A built-in sample by name (BUILTIN_SAMPLES, at `resolution`, seed 0) or a map folder (read_maps;
-    `resolution` is then ignored: the folder's maps are used as they are)."""
+    """A built-in sample by name (BUILTIN_SAMPLES, at `resolution`, seed 0), or "NAME@SEED" for another seed
+    (another composition of the same sample: the held-back variants of the material suite), or a map folder
+    (read_maps; `resolution` is then ignored: the folder's maps are used as they are)."""
     if isinstance(name_or_dir, str) and name_or_dir in BUILTIN_SAMPLES:
         return builtin_sample(name_or_dir, resolution)
+    if isinstance(name_or_dir, str) and "@" in name_or_dir:
+        name, _, seed = name_or_dir.partition("@")
+        if name in BUILTIN_SAMPLES and seed.isdigit():
+            return builtin_sample(name, resolution, int(seed))
     path = Path(name_or_dir)
     if not path.is_dir():
         raise SampleError(f"{str(name_or_dir)!r} is neither a built-in sample ({', '.join(BUILTIN_SAMPLES)}) "
