@@ -586,6 +586,38 @@ def _peak_normal(prob: _Problem) -> torch.Tensor:
     return torch.where(((h * N).sum(-1, keepdim=True) > 0.5), h, N)
 
 
+def _diffuse_normal(prob: _Problem) -> torch.Tensor:
+    """Each texel's normal from its diffuse shading alone (photometric stereo, Woodham 1980; ours as a
+    candidate): m_l / f_l = rho_d (n . w_l) on the LEDs that the diffuse term dominates, f_l the unit-albedo
+    diffuse response of a plane-normal texel divided by its cosine (intensity, emission profile, 1/r^2), w_l
+    the direction to LED l; least squares for rho_d n over the LEDs in front of the normal (a ratio above zero)
+    whose ratio lies between a tenth of those ratios' median and the median (below the highlight). Why: where the mirror
+    direction of a steeply tilted texel leaves the LED dome, the brightest LED sits at the dome's edge and its
+    half vector (_peak_normal) points far from the normal: on the paper rig, 18% of random texels (tilts
+    43-59 deg) fell into a rough-lobe basin without this candidate, 8% with it (docs/performance.md). The plane
+    normal where the system is degenerate."""
+    c = prob.config
+    N = prob.frame[0].expand(prob.n, 3)
+    geom = _geometry(torch.zeros(prob.n, GEOMETRY_SIZE, device=N.device), prob.frame, c)
+    d0 = _bases(prob, geom)[0].mean(2)
+    led = torch.tensor(prob.rig.leds.positions, dtype=torch.float32, device=N.device)[prob.upper]
+    w = _unit(led[None] - prob.pos[:, None])  # (n, L, 3)
+    cos_n = (w * N[:, None]).sum(-1)
+    f = torch.where(cos_n > 0.05, d0 / cos_n.clamp_min(0.05), torch.zeros_like(d0))
+    ratio = torch.where(f > 0.05 * f.amax(1, keepdim=True), prob.target.mean(2) / f.clamp_min(1e-12),
+                        torch.full_like(d0, math.nan))
+    top = ratio.nan_to_num(0.0).amax(1, keepdim=True)
+    lit = torch.where(ratio > 1e-6 * top, ratio, torch.full_like(ratio, math.nan))  # in front of the normal
+    med = torch.nanquantile(lit, 0.5, dim=1, keepdim=True)
+    use = (lit > 0.1 * med) & (lit <= med)
+    wu = w * use[..., None]
+    A = wu.transpose(1, 2) @ wu + 1e-9 * torch.eye(3, device=N.device)
+    b = (wu * ratio.nan_to_num(0.0)[..., None]).sum(1)
+    g = torch.linalg.solve(A, b[..., None])[..., 0]
+    ok = (use.sum(1) >= 6) & torch.isfinite(g).all(1) & ((g * N).sum(1) > 0.1 * g.norm(dim=1))
+    return torch.where(ok[:, None], _unit(g), N)
+
+
 def _best_candidate(prob: _Problem, normal: torch.Tensor):
     """For one normal per texel, the best (loss (n,), geometry numbers (n, 5), rho_d, rho_s) over the
     roughness / tangent candidates, each with its closed-form albedos."""
@@ -609,18 +641,18 @@ def _best_candidate(prob: _Problem, normal: torch.Tensor):
 
 def _initial(prob: _Problem):
     """(geometry numbers (n, 5), rho_d, rho_s) of the best initial candidate per texel: the plane normal,
-    and for texels whose specular peak points elsewhere (> 1 deg off), that peak's half vector, each with
-    every roughness / tangent candidate."""
+    and where they point elsewhere (> 1 deg off), the specular peak's half vector (_peak_normal) and the
+    diffuse shading's normal (_diffuse_normal), each with every roughness / tangent candidate."""
     with torch.no_grad():
         N = prob.frame[0].expand(prob.n, 3)
         best = _best_candidate(prob, N)
-        h = _peak_normal(prob)
-        sel = torch.nonzero((h * N).sum(-1) < math.cos(math.radians(1.0))).flatten()
-        if sel.numel():
-            other = _best_candidate(prob.part(sel), h[sel])
-            better = other[0] < best[0][sel]
-            for x, y in zip(best, other):
-                x[sel] = torch.where(better.view(-1, *[1] * (x.ndim - 1)), y, x[sel])
+        for h in (_peak_normal(prob), _diffuse_normal(prob)):
+            sel = torch.nonzero((h * N).sum(-1) < math.cos(math.radians(1.0))).flatten()
+            if sel.numel():
+                other = _best_candidate(prob.part(sel), h[sel])
+                better = other[0] < best[0][sel]
+                for x, y in zip(best, other):
+                    x[sel] = torch.where(better.view(-1, *[1] * (x.ndim - 1)), y, x[sel])
     return best[1], best[2], best[3]
 
 

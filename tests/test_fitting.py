@@ -251,3 +251,29 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini):
     assert np.median(rs_joint[weak]) < 0.5 * np.median(rs_alone[weak])
     assert np.median(joint[~weak]) < 0.02 and np.max(np.abs(joint[~weak] - alone[~weak])) < 0.01
     assert np.median(rs_joint[~weak]) < 0.01
+
+
+def test_diffuse_normal_finds_a_steep_tilt(mini):
+    """_diffuse_normal (photometric stereo on the LEDs below the highlight, an initial candidate): texels
+    tilted 35-50 deg, narrow and broad lobes, exact targets: within 1 deg of the true normal; the half vector of
+    the brightest LED (_peak_normal) is not (for these the mirror direction leaves the LED dome)."""
+    from reconstruction.fitting import _diffuse_normal, _peak_normal, _problem
+
+    tilts = [(35, 20), (40, 100), (45, 200), (50, 300), (45, 0), (50, 150)]
+    n = len(tilts)
+    p = {"position": np.array([[x, 0.0, -122.0] for x in np.linspace(-30, 30, n)]),
+         "normal": np.array([_tilt(t, a) for t, a in tilts]), "tangent": None,
+         "alpha_x": np.array([0.03, 0.3, 0.05, 0.1, 0.02, 0.2]), "alpha_y": np.array([0.03, 0.3, 0.05, 0.1, 0.02, 0.2]),
+         "rho_d": np.full((n, 3), 0.5), "rho_s": np.full((n, 3), 3.0)}
+    p["normal"] /= np.linalg.norm(p["normal"], axis=1, keepdims=True)
+    t0 = np.cross(p["normal"], [0.0, 1.0, 0.0])
+    p["tangent"] = t0 / np.linalg.norm(t0, axis=1, keepdims=True)
+    m, lines, w = _targets(mini, p)
+    prob = _problem(mini, p["position"], m, lines, w, None, FitConfig())
+    truth = torch.as_tensor(p["normal"], dtype=torch.float32)
+
+    def deg(v):
+        return np.degrees(np.arccos(np.clip((v * truth).sum(1).numpy(), -1, 1)))
+
+    assert deg(_diffuse_normal(prob)).max() < 1.0
+    assert deg(_peak_normal(prob)).max() > 5.0

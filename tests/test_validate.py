@@ -61,7 +61,7 @@ HELD_BACK = tuple(f"{name}@{9001 + k}" for k, name in enumerate(SUITE) if k % 2 
 # where another machine's float rounding may tip it either way, so it is reported (xfail/xpass), not enforced.
 KNOWN_OPEN = {
     "paper": ("a rough, weak lobe on bright stock (rho_s/rho_d ~ 0.2/0.85: 0.5% of a photo) whose alpha moves "
-              "with 0.05% photometric errors (neighbour spill, noise): alpha 18-52%; docs/accuracy.md", True),
+              "with 0.05% photometric errors (neighbour spill, noise): alpha 22-52%; docs/accuracy.md", True),
     "fabric": ("a rough, weak, mildly anisotropic lobe (0.5-2% of a photo): alpha_y 10.2% at the 10% goal; "
                "docs/accuracy.md", False),
 }
@@ -97,6 +97,6 @@ def test_suite_report_and_table(suite_run):
     assert all(c.passed for c in suite_run["checks"])
     table = suite_table(suite_run["samples"])
     assert all(name in table for name in SUITE + HELD_BACK)
-    report = (suite_run["report"] / "report.md").read_text()
-    assert all(name in report for name in SUITE + HELD_BACK)
-    assert len(list((suite_run["report"]).rglob("*.png"))) >= len(SUITE + HELD_BACK)
+    report = suite_run["report"]  # OUTPUT/report/report.md
+    assert report.name == "report.md" and all(name in report.read_text() for name in SUITE + HELD_BACK)
+    assert len(list(report.parent.rglob("*.png"))) >= len(SUITE + HELD_BACK)
