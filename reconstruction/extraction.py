@@ -95,7 +95,6 @@ class Measurements:
     """Per texel (N = R*R, row-major) of a TextureGrid, in network units (module docstring)."""
 
     grid: TextureGrid
-    learned: np.ndarray        # (N, 2, K) grey (+,-) differences, views [primary, secondary]
     lines: np.ndarray          # (N, 64, 3) RGB line-light measurements, primary view
     line_weights: np.ndarray   # (64, L_upper, 3) the line patterns' relative drive (levels / 255)
     transparency: np.ndarray   # (N,) in [0, 1]
@@ -107,6 +106,12 @@ class Measurements:
     # lines, which the GGX fit uses too
     learned_photos: np.ndarray   # (N, 2, 64, 3) views [primary, secondary]
     learned_weights: np.ndarray  # (64, L_upper, 3)
+
+    @property
+    def learned(self) -> np.ndarray:
+        """(N, 2, K) the network's input: the grey (mean RGB) (+, -) differences of the learned photos, views
+        [primary, secondary]."""
+        return (self.learned_photos[:, :, 0::2] - self.learned_photos[:, :, 1::2]).mean(axis=3)
 
 
 def capture_patterns(session: CaptureSession, rig, names) -> np.ndarray:
@@ -229,27 +234,25 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_
 
     from tqdm import tqdm
 
-    n = len(pos)
-    learned = np.empty((n, 2, len(LEARNED) // 2), np.float32)
-    learned_photos = np.empty((n, 2, len(LEARNED), 3), np.float32)
-    for c, (uv, ks) in enumerate(((uv0, k0), (uv1, k1))):
-        for p in tqdm(range(len(LEARNED) // 2), desc=f"extract learned cam{c}", disable=not progress):
-            plus, minus = (_sample(photo(2 * p + s, c), uv, ks) * scale for s in (0, 1))
-            learned[:, c, p] = (plus - minus).mean(axis=1)
-            learned_photos[:, c, 2 * p], learned_photos[:, c, 2 * p + 1] = plus, minus
-    lines = np.empty((n, len(LINES), 3), np.float32)
-    for j, k in enumerate(tqdm(LINES, desc="extract lines", disable=not progress)):
-        lines[:, j] = _sample(photo(k, 0), uv0, k0) * scale
-    bottom = _sample(photo(BOTTOM, 0), uv0, k0).mean(axis=1)
-    empty = _sample(photo(EMPTY_BOTTOM, 0), uv0, k0).mean(axis=1)
-    transparency = np.clip(bottom / (empty + 1e-6), 0.0, 1.0).astype(np.float32)  # reference §6.3
-    valid = (np.isfinite(learned).all(axis=(1, 2)) & np.isfinite(lines).all(axis=(1, 2))
-             & np.isfinite(learned_photos).all(axis=(1, 2, 3)) & np.isfinite(transparency))
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
     weights = capture_patterns(session, rig, [f"line_{j:02d}" for j in range(len(LINES))])[:, upper, :]
     shown = session.shown_patterns(0)
     if any(k not in shown for k in LEARNED):
         raise ExtractionError(f"{session.dir}: the capture's plan does not name the pattern of photos 0-63")
     learned_weights = capture_patterns(session, rig, [shown[k] for k in LEARNED])[:, upper, :]
-    return Measurements(grid, learned, lines, weights, transparency, valid, uv0.astype(np.float32),
-                        uv1.astype(np.float32), learned_photos, learned_weights)
+
+    n = len(pos)
+    learned_photos = np.empty((n, 2, len(LEARNED), 3), np.float32)
+    for c, (uv, ks) in enumerate(((uv0, k0), (uv1, k1))):
+        for k in tqdm(LEARNED, desc=f"extract learned cam{c}", disable=not progress):
+            learned_photos[:, c, k] = _sample(photo(k, c), uv, ks) * scale
+    lines = np.empty((n, len(LINES), 3), np.float32)
+    for j, k in enumerate(tqdm(LINES, desc="extract lines", disable=not progress)):
+        lines[:, j] = _sample(photo(k, 0), uv0, k0) * scale
+    bottom = _sample(photo(BOTTOM, 0), uv0, k0).mean(axis=1)
+    empty = _sample(photo(EMPTY_BOTTOM, 0), uv0, k0).mean(axis=1)
+    transparency = np.clip(bottom / (empty + 1e-6), 0.0, 1.0).astype(np.float32)  # reference §6.3
+    valid = (np.isfinite(learned_photos).all(axis=(1, 2, 3)) & np.isfinite(lines).all(axis=(1, 2))
+             & np.isfinite(transparency))
+    return Measurements(grid, lines, weights, transparency, valid, uv0.astype(np.float32), uv1.astype(np.float32),
+                        learned_photos, learned_weights)

@@ -473,7 +473,7 @@ def _solve_box(dd, dm, ds, ss, sm, rho_s_max: float):
     return best_a, best_b
 
 
-def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: list):
+def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: list, sums: list | None = None):
     """(n, 3) rho_d, rho_s in closed form (module docstring) for the bases D, S and each photo group's
     predictions (W D, W S) (_photo_bases), and the albedos each photo group is predicted with: config.camera's
     share the lumitexels' (the result), another camera's photos get their own pair, fitted to them alone (ours:
@@ -482,9 +482,11 @@ def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: li
     false specular lobe: fabric alpha 6% -> 78%; with its own albedos that view informs the geometry, the
     normal, tangent and roughness, only). Constants for autograd: at the minimiser the loss's gradient w.r.t.
     them vanishes (exactly for "mse", to first order for "log1p"), so the geometry's gradient needs none.
-    Returns (rho_d, rho_s, [(rho_d, rho_s) of each photo group])."""
+    `sums`: _albedo_sums of these bases, when the caller has them. Returns (rho_d, rho_s, [(rho_d, rho_s) of
+    each photo group])."""
     with torch.no_grad():
-        a, b = _solve_box(*(s.double() for s in _albedo_sums(prob, D, S, photo_bases)), prob.config.rho_s_max)
+        sums = sums if sums is not None else _albedo_sums(prob, D, S, photo_bases)
+        a, b = _solve_box(*(s.double() for s in sums), prob.config.rho_s_max)
         albedos = (a.float(), b.float())
         own = [albedos if g.camera == prob.config.camera else _own_albedos(prob, g, WD, WS)
                for g, (WD, WS) in zip(prob.photos, photo_bases)]
@@ -525,11 +527,15 @@ def _loss_of(prob: _Problem, m_hat: torch.Tensor, photos_hat: list) -> torch.Ten
     return out
 
 
-def _projected_loss(prob: _Problem, geom: dict):
-    """The loss of `geom` with its closed-form albedos: (loss (n,), rho_d, rho_s)."""
+def _projected_loss(prob: _Problem, geom: dict, sums: list | None = None):
+    """The loss of `geom` with its closed-form albedos: (loss (n,), rho_d, rho_s); with a list `sums`, the
+    albedo quadratic's sums (_albedo_sums) are appended to it."""
     D, S = _bases(prob, geom)
     pb = _photo_bases(prob, geom, D, S)
-    rd, rs, own = _projected(prob, D, S, pb)
+    own_sums = _albedo_sums(prob, D, S, pb)
+    if sums is not None:
+        sums.append(own_sums)
+    rd, rs, own = _projected(prob, D, S, pb, own_sums)
     photos_hat = [a.T[:, :, None] * WD + b.T[:, :, None] * WS for (WD, WS), (a, b) in zip(pb, own)]
     return _loss_of(prob, rd[:, None] * D + rs[:, None] * S, photos_hat), rd, rs
 
@@ -749,13 +755,14 @@ def _propagate(prob: _Problem, q: torch.Tensor, grid_shape) -> tuple[torch.Tenso
     return q, int(moved.numel())
 
 
-def _final(prob: _Problem, q: torch.Tensor) -> list:
-    """Per chunk of texels: (geometry, loss, rho_d, rho_s) of the numbers q with their closed-form albedos."""
+def _final(prob: _Problem, q: torch.Tensor, sums: list | None = None) -> list:
+    """Per chunk of texels: (geometry, loss, rho_d, rho_s) of the numbers q with their closed-form albedos;
+    with a list `sums`, each chunk's albedo sums (_albedo_sums) are appended to it."""
     parts = []
     with torch.no_grad():
         for idx in _chunks(prob, prob.config.batch):
             geom = _log_geometry(q[idx], prob.frame)
-            parts.append((geom, *_projected_loss(prob.part(idx), geom)))
+            parts.append((geom, *_projected_loss(prob.part(idx), geom, sums)))
     return parts
 
 
@@ -907,9 +914,10 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
                  "joint_sigma2": sigma2}
 
 
-def _joint_albedos(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, rho_s: torch.Tensor, grid_shape,
+def _joint_albedos(prob: _Problem, sums: list, rho_d: torch.Tensor, rho_s: torch.Tensor, grid_shape,
                    sigma2: float) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The albedos of every texel at once for the geometry q, under the same prior on rho_s as the roughness's
+    """The albedos of every texel at once, for the albedo quadratics `sums` (_albedo_sums per chunk of texels,
+    from _final at the final geometry), under the same prior on rho_s as the roughness's
     (_joint_roughness; ours, issue #14): minimises
         sum_i Q_i(rho_d_i, rho_s_i) / sigma^2 + sum_{i~j} w_ij |rho_s_i - rho_s_j|^2 / (tau rho_ij)^2
     per channel, Q_i the texel's albedo quadratic (_albedo_sums, the loss to second order), w_ij the colour
@@ -920,16 +928,10 @@ def _joint_albedos(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, rho_s: 
     rho_s, conjugate-gradient iterations)."""
     c = prob.config
     R, C = (int(v) for v in grid_shape)
-    sums = []
-    for idx in _chunks(prob, c.batch):
-        part = prob.part(idx)
-        geom = _log_geometry(q[idx], part.frame)
-        D, S = _bases(part, geom)
-        sums.append(_albedo_sums(part, D, S, _photo_bases(part, geom, D, S)))
     dd, dm, ds, ss, sm = (torch.cat([x[k] for x in sums]).double() / sigma2 for k in range(5))
-    n = R * C
-    H = torch.zeros(n, 6, 6, dtype=torch.float64, device=q.device)
-    ch = torch.arange(3, device=q.device)
+    dev = dd.device
+    H = torch.zeros(R * C, 6, 6, dtype=torch.float64, device=dev)
+    ch = torch.arange(3, device=dev)
     H[:, ch, ch], H[:, ch, ch + 3], H[:, ch + 3, ch], H[:, ch + 3, ch + 3] = dd, ds, ds, ss
     H += (1e-9 * torch.diagonal(H, dim1=1, dim2=2).sum(1) + 1e-30)[:, None, None] * torch.eye(6, dtype=H.dtype,
                                                                                                device=H.device)
@@ -973,8 +975,9 @@ def _fit_direct(prob: _Problem, grid_shape=None) -> FitResult:
     prior = {}
     if grid_shape is not None and c.alpha_prior is not None:
         q, prior = _joint_roughness(prob, q, torch.cat([p[2] for p in parts]), grid_shape)
-        parts = _final(prob, q)
-        rd, rs, prior["albedo_cg_iterations"] = _joint_albedos(prob, q, torch.cat([p[2] for p in parts]),
+        sums = []
+        parts = _final(prob, q, sums)
+        rd, rs, prior["albedo_cg_iterations"] = _joint_albedos(prob, sums, torch.cat([p[2] for p in parts]),
                                                                torch.cat([p[3] for p in parts]), grid_shape,
                                                                prior["joint_sigma2"])
         sizes = [len(p[2]) for p in parts]

@@ -217,7 +217,8 @@ def test_roughness_tensor_coordinates_round_trip():
     assert float(iso[0, 3].abs() + iso[0, 4].abs()) == 0.0
 
 
-def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini):
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else []))
+def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     """A 6 x 8 grid: a rough, weak lobe on a bright diffuse (paper stock: the lobe is ~1% of a line photo)
     next to a glossy ink of another colour, lines with 0.4% seeded photo noise (the extracted lines' level,
     issue #14) and lumitexels with 2%. Each texel alone errs on the weak lobe's alpha; the joint prior (FitConfig.alpha_prior)
@@ -239,7 +240,8 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini):
     m = m * (1 + 0.02 * rng.standard_normal(m.shape)).astype(np.float32)  # a decoder's error, ~2%
 
     def errors(prior):  # |log alpha| and relative rho_s errors per texel
-        r = fit_ggx(mini, pos, m, lines=noisy, line_weights=w, grid_shape=(R, C), config=FitConfig(alpha_prior=prior))
+        r = fit_ggx(mini, pos, m, lines=noisy, line_weights=w, grid_shape=(R, C),
+                    config=FitConfig(alpha_prior=prior, device=device))
         return (np.abs(np.log(np.sqrt(r.alpha_x * r.alpha_y) / np.sqrt(p["alpha_x"] * p["alpha_y"]))),
                 np.abs(r.rho_s.mean(1) / p["rho_s"].mean(1) - 1))
 

@@ -350,23 +350,20 @@ def merge_hdr_numpy(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.
     const_var = sensor.read_noise_e ** 2 + g * g / 12.0
     e_thr = (thr - sensor.black_level_dn) * g
 
-    def used_frames():  # (frame, its mask of use), shortest first (merge_kernel's _use_frame)
-        e_acc, kt_acc = np.zeros(shape), np.zeros(shape)
-        for f in order:
-            r, t = raws[f], ts[f]
-            kt = ke * t
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mu = np.maximum(e_acc / kt_acc, 0.0) * kt + sensor.dark_current_e_per_s * t
-                sd = np.sqrt(mu * (1.0 + kt / kt_acc) + const_var)
-            v = (r < thr) & ((kt_acc <= 0) | (mu + EXCLUSION_Z * sd < e_thr))
-            e = (r.astype(np.float64) - sensor.black_level_dn) * g - sensor.dark_current_e_per_s * t
-            e_acc += np.where(v, e, 0.0)
-            kt_acc += np.where(v, kt, 0.0)
-            yield f, v, e_acc, kt_acc
-
-    # pass 1: pilot radiance from the frames used (sum of electrons / sum of exposures)
-    for _, _, e_sum, kt_sum in used_frames():
-        pass
+    # pass 1: the frames used at each site, shortest first (merge_kernel's _use_frame), and the pilot radiance
+    # from them (sum of electrons / sum of exposures)
+    e_sum, kt_sum = np.zeros(shape), np.zeros(shape)
+    valid = {}
+    for f in order:
+        r, t = raws[f], ts[f]
+        kt = ke * t
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mu = np.maximum(e_sum / kt_sum, 0.0) * kt + sensor.dark_current_e_per_s * t
+            sd = np.sqrt(mu * (1.0 + kt / kt_sum) + const_var)
+        v = valid[f] = (r < thr) & ((kt_sum <= 0) | (mu + EXCLUSION_Z * sd < e_thr))
+        e = (r.astype(np.float64) - sensor.black_level_dn) * g - sensor.dark_current_e_per_s * t
+        e_sum += np.where(v, e, 0.0)
+        kt_sum += np.where(v, kt, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         L0 = np.maximum(np.where(kt_sum > 0, e_sum / kt_sum, 0.0), 0.0)
 
@@ -374,8 +371,8 @@ def merge_hdr_numpy(raws, exposures_s, sensor: SensorParams, gain_db: float = 0.
     num = np.zeros(shape)
     wsum = np.zeros(shape)
     used = np.zeros(shape, dtype=np.uint8)
-    for f, v, _, _ in used_frames():
-        r, t = raws[f], ts[f]
+    for f in order:  # the kernel's order of summation
+        r, t, v = raws[f], ts[f], valid[f]
         kt = ke * t
         var_e = L0 * kt + sensor.dark_current_e_per_s * t + const_var
         w = np.where(v, kt * kt / var_e, 0.0)
