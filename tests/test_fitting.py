@@ -58,11 +58,11 @@ def _truth():
             "rho_s": np.array([m[5] for m in MATERIALS])}
 
 
-def _targets(rig, p):
+def _targets(rig, p, device="cpu"):
     """Network-unit lumitexels (N, L_upper, 3) and linear-light measurements (N, 64, 3) of params p."""
     upper = np.flatnonzero(~rig.is_bottom)
     m = twin.lumitexels(rig, p["position"], p["normal"], p["tangent"], p["rho_d"], p["rho_s"], p["alpha_x"],
-                        p["alpha_y"], convention="physical", camera="primary",
+                        p["alpha_y"], convention="physical", camera="primary", device=device,
                         transparency=np.zeros(len(p["position"])),
                         visibility=True)[:, upper] * LUMITEXEL_SCALE
     w = linear_lights(rig).weights[:, upper].astype(np.float32)
@@ -234,7 +234,7 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
          "alpha_x": np.where(weak, 0.45, 0.12), "alpha_y": np.where(weak, 0.45, 0.12),
          "rho_d": np.where(weak[:, None], 0.8, 0.1) * np.ones((n, 3)), "rho_s": np.where(weak, 0.3, 3.0)[:, None]
          * np.ones((n, 3))}
-    m, lines, w = _targets(mini, p)
+    m, lines, w = _targets(mini, p, device)
     rng = np.random.default_rng(7)
     noisy = lines * (1 + 0.004 * rng.standard_normal(lines.shape)).astype(np.float32)
     m = m * (1 + 0.02 * rng.standard_normal(m.shape)).astype(np.float32)  # a decoder's error, ~2%

@@ -177,8 +177,8 @@ def test_merge_kernels_are_the_numpy_merge(bayer, gain_db, n, device):
     rng = np.random.default_rng(n)
     rad = (rng.uniform(0, 1, (37, 50, 3)) ** 4 * 3 * saturation_radiance(sensor, 1e-3, gain_db)).astype(np.float32)
     ts = [1e-3 * 8.0 ** i for i in range(n)][::-1]  # longest first: `shortest` must be found, not assumed
-    raws = [simulate_raw(rad, sensor=sensor, exposure_s=t, gain_db=gain_db, seed=3, frame=i, camera_key="c")
-            for i, t in enumerate(ts)]
+    raws = [simulate_raw(rad, sensor=sensor, exposure_s=t, gain_db=gain_db, seed=3, frame=i, camera_key="c",
+                         device=device) for i, t in enumerate(ts)]
     ours, ref = merge_hdr(raws, ts, sensor, gain_db, device=device), merge_hdr_numpy(raws, ts, sensor, gain_db)
     assert ref.saturated_mask.any() and not ref.saturated_mask.all()
     if n > 1:  # some sites drop a frame that its own reading would have kept: the shorter frames' prediction
