@@ -25,10 +25,19 @@ def cmd_train(args) -> int:
     over = {k: v for k, v in (("steps", args.steps), ("batch", args.batch), ("lr", args.lr), ("seed", args.seed),
                               ("device", args.device), ("eval_every", args.eval_every),
                               ("checkpoint_every", args.checkpoint_every),
-                              ("pair_fraction", args.pair_fraction), ("dropout", args.dropout))
+                              ("pair_fraction", args.pair_fraction), ("dropout", args.dropout),
+                              ("measurement_noise", args.measurement_noise))
             if v is not None}
     cfg = replace(cfg, **over)
-    m = train(cfg, args.output, progress=not args.no_progress, time_limit=args.time_limit)
+    try:
+        m = train(cfg, args.output, progress=not args.no_progress, time_limit=args.time_limit)
+    finally:
+        import torch.distributed as dist
+
+        if dist.is_initialized():  # under torchrun (reconstruction.distributed)
+            dist.destroy_process_group()
+    if not m:  # a rank other than 0: rank 0 reports
+        return 0
     ips = m["iterations_per_s"]
     print(f"trained {m['steps']} steps in {args.output}: final held-out loss (Eq. 3) {m['final_heldout_loss']:.6g}"
           + (f", {ips:.2f} it/s, {m['lumitexels_per_s']:.0f} lumitexels/s" if ips else ""))
@@ -68,7 +77,8 @@ def register(sub) -> None:
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
 
-    s = sub.add_parser("train", help="train the acquisition network (resumable); writes learned patterns")
+    s = sub.add_parser("train", help="train the acquisition network (resumable); writes learned patterns; under "
+                       "torchrun, data-parallel over the processes (--batch is the global batch)")
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
     s.add_argument("--steps", type=int, help=f"optimiser steps in all (default: {tc.steps})")
     s.add_argument("--batch", type=int, help=f"lumitexels per step (default: {tc.batch})")
@@ -82,6 +92,8 @@ def register(sub) -> None:
                    f"(default: {tc.pair_fraction})")
     s.add_argument("--dropout", type=float, help=f"dropout on every layer but the last, 0-1 (default: {tc.dropout}, "
                    "paper §6)")
+    s.add_argument("--measurement-noise", type=float, help=f"sigma of the multiplicative noise on the measurements in "
+                   f"training (default: {tc.measurement_noise}, paper §6)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="checkpoint and stop after this many "
                    "seconds (re-run to resume): chunks for lent machines (default: none)")
     s.add_argument("-o", "--output", required=True, help="run folder (re-run to resume)")

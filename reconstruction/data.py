@@ -320,12 +320,21 @@ class LumitexelStream:
                      primary parameters), secondary (the parameters of each further view, a list)
     pair_batch(i) -> views_a, views_b (B, V, L), targets (B, 4, L) [a, b, a with b's albedos, b with a's
                      albedos] in cameras[0], params_a, params_b
-    Tensors are on `device`. Batch i of a stream depends only on (seed, i): any order, any subset."""
+    Tensors are on `device`. Batch i of a stream depends only on (seed, i): any order, any subset.
+
+    shard=(rank, world): this rank's contiguous slice of every batch, for training over `world` processes
+    (reconstruction.distributed). The parameters of the whole batch are drawn (cheap, on the CPU) and only
+    the slice is rendered, so the slices of the ranks are disjoint and together are the one-process batch,
+    value for value (the kernels are per point). batch_size is the global batch; world must divide it."""
 
     def __init__(self, rig, config: SamplingConfig, batch_size: int, seed: int, device="cpu",
-                 cameras=("primary", "secondary")):
+                 cameras=("primary", "secondary"), shard: tuple[int, int] = (0, 1)):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        rank, world = (int(v) for v in shard)
+        if not (world >= 1 and 0 <= rank < world and batch_size % world == 0):
+            raise ValueError(f"shard (rank {rank}, world {world}) must have 0 <= rank < world and world dividing "
+                             f"the batch ({batch_size})")
         cameras = tuple(cameras)
         if not cameras:
             raise ValueError("cameras must name at least one camera")
@@ -337,26 +346,29 @@ class LumitexelStream:
         self.rig, self.config, self.batch_size, self.seed = rig, config, int(batch_size), int(seed)
         self.device, self.cameras = torch.device(device), cameras
         self.num_lumitexel = int((~np.asarray(rig.is_bottom)).sum())
+        share = batch_size // world
+        self.rows = slice(rank * share, (rank + 1) * share)
 
-    def _views(self, g: torch.Generator, n: int):
+    def _views(self, g: torch.Generator, n: int, rows: slice = slice(None)):
         p = sample_parameters(n, self.config, self.rig, g)
         sec = [perturb_for_secondary(p, self.config, g, self.rig) for _ in self.cameras[1:]]
+        p, sec = {k: v[rows] for k, v in p.items()}, [{k: v[rows] for k, v in s.items()} for s in sec]
         views = [synthesize(self.rig, p, self.cameras[0], self.device)]  # one launch per camera
         views += [synthesize(self.rig, s, c, self.device) for s, c in zip(sec, self.cameras[1:])]
         return p, sec, torch.stack(views, dim=1)
 
-    def _make(self, stream: str, index: int, n: int) -> dict:
-        p, sec, views = self._views(_generator(self.seed, stream, index), n)
+    def _make(self, stream: str, index: int, n: int, rows: slice = slice(None)) -> dict:
+        p, sec, views = self._views(_generator(self.seed, stream, index), n, rows)
         return {"views": views, "target": views[:, 0], "params": _to(p, self.device),
                 "secondary": [_to(s, self.device) for s in sec]}
 
     def batch(self, i: int) -> dict:
-        return self._make("train", i, self.batch_size)
+        return self._make("train", i, self.batch_size, self.rows)
 
     def pair_batch(self, i: int) -> dict:
         g = _generator(self.seed, "pair", i)
-        pa, sa, va = self._views(g, self.batch_size)
-        pb, sb, vb = self._views(g, self.batch_size)
+        pa, sa, va = self._views(g, self.batch_size, self.rows)
+        pb, sb, vb = self._views(g, self.batch_size, self.rows)
         targets = pair_targets(self.rig, pa, pb, self.device, self.cameras[0])
         return {"views_a": va, "views_b": vb, "targets": targets, "params_a": _to(pa, self.device),
                 "params_b": _to(pb, self.device)}

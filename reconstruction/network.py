@@ -364,7 +364,8 @@ class AcquisitionNet(nn.Module):
 
     forward(lumitexels (B, views, L)) -> dict(measurements (B, views, K), albedo (B, albedo_dim),
         shape (B, shape_dim), log_lumitexel (B, L)); the decoded lumitexel is the primary view's (view 0),
-        so its training target is lumitexels[:, 0].
+        so its training target is lumitexels[:, 0]. forward(m_a, pair_with=m_b) -> dict(swap_log_lumitexel
+        = albedo_swap_forward(m_a, m_b)).
     encode(measurements) -> (albedo, shape); decode(albedo, shape) -> log_lumitexel;
     decode_lumitexel(albedo, shape) -> lumitexel (exp - 1, clamped >= 0).
     albedo_swap_forward(m_a, m_b) -> (B, 4, L): the four latent combinations of a pair (paper §6).
@@ -394,7 +395,9 @@ class AcquisitionNet(nn.Module):
     def decode_lumitexel(self, albedo: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
         return log_to_lumitexel(self.decode(albedo, shape))
 
-    def forward(self, lumitexels: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, lumitexels: torch.Tensor, pair_with: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        if pair_with is not None:  # the albedo-swap step through forward, so that DDP sees it (reconstruction.train)
+            return {"swap_log_lumitexel": self.albedo_swap_forward(lumitexels, pair_with)}
         measurements = self.measure(lumitexels)
         albedo, shape = self.encode(measurements)
         return {"measurements": measurements, "albedo": albedo, "shape": shape,

@@ -40,6 +40,7 @@ train_swap_loss: the raw mean albedo_swap_loss of the pair steps. lumitexels_per
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -54,7 +55,8 @@ import torch
 
 from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
 
-from .data import LumitexelStream, SamplingConfig, heldout_set
+from .data import LumitexelStream, SamplingConfig, heldout_set, stream_seed
+from .distributed import Dist, any_rank, all_sum, barrier, gather_objects, globalise_batchnorm, join
 from .network import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
 
 __all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_patterns", "load_checkpoint",
@@ -151,8 +153,14 @@ def _set_rng_state(state: dict, device: torch.device) -> None:
 
 
 def _save_checkpoint(run_dir: Path, model, opt, step: int, config: TrainConfig, rig_digest: str,
-                     device: torch.device, wall_s: float) -> None:
+                     ctx: Dist, wall_s: float) -> None:
+    """Every rank calls it (each rank's RNG state is kept); rank 0 writes."""
     from safetensors.torch import save_file
+
+    rng = gather_objects(_rng_state(ctx.device), ctx)
+    if not ctx.is_main:
+        barrier(ctx)
+        return
 
     tensors = {f"model.{k}": v.detach().cpu().contiguous().clone() for k, v in model.state_dict().items()}
     for pid, st in opt.state_dict()["state"].items():
@@ -164,8 +172,25 @@ def _save_checkpoint(run_dir: Path, model, opt, step: int, config: TrainConfig, 
         save_file(tensors, str(tmp), metadata={"step": str(step)})
     meta = {"format": "hemicube-train-checkpoint", "version": 1, "step": int(step), "tensors": CHECKPOINT_TENSORS,
             "sha256": file_sha256(path), "config": config.to_json(), "rig_digest": rig_digest,
-            "rng": _rng_state(device), "wall_s": float(wall_s)}
+            "rng": rng[0], "world_size": ctx.world, "wall_s": float(wall_s)}
+    if ctx.active:
+        meta["rng_ranks"] = rng
     write_bytes_atomic(run_dir / CHECKPOINT_JSON, json.dumps(meta).encode())
+    barrier(ctx)
+
+
+def _resume_rng(meta: dict, ctx: Dist, seed: int) -> None:
+    """Each rank's RNG as it was at the checkpoint; a run resumed on another number of processes reseeds
+    every rank instead (dropout and noise draws then differ from an uninterrupted run; the data do not)."""
+    saved = meta.get("rng_ranks", [meta["rng"]])
+    if len(saved) == ctx.world:
+        _set_rng_state(saved[ctx.rank], ctx.device)
+        return
+    if ctx.is_main:
+        print(f"train: the checkpoint was written by {len(saved)} process(es), this run has {ctx.world}: the "
+              "model, optimiser and data stream resume exactly; dropout and measurement-noise draws are reseeded",
+              file=sys.stderr)
+    torch.manual_seed(stream_seed(seed, f"resume-rank-{ctx.rank}", int(meta["step"])))
 
 
 def load_checkpoint(run_dir) -> tuple[dict, dict] | None:
@@ -307,13 +332,17 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
     if time_limit is not None and not (isinstance(time_limit, (int, float)) and time_limit >= 0):
         raise ValueError(f"time_limit must be a number of seconds >= 0, got {time_limit!r}")
     run_dir = Path(run_dir)
-    device = torch.device(config.device)
+    ctx = join(config.device)  # torchrun's process group, if any (reconstruction.distributed)
+    device = ctx.device
+    if config.batch % ctx.world:
+        raise TrainError(f"the global batch ({config.batch}) must be a multiple of the {ctx.world} processes")
     rig = twin.load_rig(config.rig)
     digest = rig.digest()
     ckpt = load_checkpoint(run_dir)
     if ckpt is not None:
         _check_resumable(ckpt[0], config, digest, run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    if ctx.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
 
     threads = torch.get_num_threads()
     if device.type == "cpu":
@@ -321,11 +350,15 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
     try:
         num_upper = int((~np.asarray(rig.is_bottom)).sum())
         net_cfg = config.network_config(num_upper)
-        stream = LumitexelStream(rig, config.sampling, config.batch, config.seed, device)
-        held = heldout_set(rig, config.sampling, config.heldout_size, config.seed, device)
+        stream = LumitexelStream(rig, config.sampling, config.batch, config.seed, device, shard=(ctx.rank, ctx.world))
+        # the held-out set is evaluated by rank 0 alone (eval mode: no cross-rank statistics)
+        held = heldout_set(rig, config.sampling, config.heldout_size, config.seed, device) if ctx.is_main else None
         torch.manual_seed(config.seed)
         model = AcquisitionNet(net_cfg).to(device)
         model.train()
+        if ctx.active:
+            globalise_batchnorm(model)
+            torch.manual_seed(stream_seed(config.seed, f"rank-{ctx.rank}", 0))  # own dropout and noise draws
         opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(config.beta1, config.beta2))
 
         mpath = run_dir / "metrics.jsonl"
@@ -333,21 +366,30 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
         if ckpt is not None:
             meta, tensors = ckpt
             _restore(model, opt, {k: v.to(device) for k, v in tensors.items()})
-            _set_rng_state(meta["rng"], device)
+            _resume_rng(meta, ctx, config.seed)
             start, wall_before = int(meta["step"]), float(meta.get("wall_s", 0.0))
-            # drop evaluations written after the checkpoint (a killed run): they are redone
-            kept = _read_metrics(mpath, max_step=start)
-            write_bytes_atomic(mpath, "".join(json.dumps(r) + "\n" for r in kept).encode())
-        elif mpath.exists():
+            if ctx.is_main:  # drop evaluations written after the checkpoint (a killed run): they are redone
+                kept = _read_metrics(mpath, max_step=start)
+                write_bytes_atomic(mpath, "".join(json.dumps(r) + "\n" for r in kept).encode())
+        elif ctx.is_main and mpath.exists():
             mpath.unlink()
+        if ctx.active:  # gradients averaged over the ranks (reconstruction.distributed)
+            from torch.nn.parallel import DistributedDataParallel
+
+            net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+        else:
+            net = model
+        barrier(ctx)  # rank 0 has tidied the folder before anyone goes on
 
         t0 = time.perf_counter()
         last_eval_t, last_samples = t0, 0
         samples, window_plain, window_swap = 0, [], []
         heldout, stopped = None, False
-        with open(mpath, "a") as mf:
+        with open(mpath, "a") if ctx.is_main else contextlib.nullcontext() as mf:
             def log(step: int):
                 nonlocal last_eval_t, last_samples, window_plain, window_swap, heldout
+                if not ctx.is_main:
+                    return None
                 now = time.perf_counter()
                 heldout = _evaluate(model, held)
                 row = {"step": step,
@@ -365,48 +407,54 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
 
             if start == 0:
                 log(0)
-            bar = tqdm(range(start, config.steps), initial=start, total=config.steps, disable=not progress,
-                       desc="train", unit="step", file=sys.stderr)
+            bar = tqdm(range(start, config.steps), initial=start, total=config.steps,
+                       disable=not (progress and ctx.is_main), desc="train", unit="step", file=sys.stderr)
             for i in bar:
                 if is_pair_step(i, config.pair_fraction):
                     b = stream.pair_batch(i)
-                    loss = albedo_swap_loss(model.albedo_swap_forward(b["views_a"], b["views_b"]), b["targets"])
+                    loss = albedo_swap_loss(net(b["views_a"], pair_with=b["views_b"])["swap_log_lumitexel"],
+                                            b["targets"])
                     n = 2 * config.batch
                 else:
                     b = stream.batch(i)
-                    loss = lumitexel_loss(model(b["views"])["log_lumitexel"], b["views"][:, 0])
+                    loss = lumitexel_loss(net(b["views"])["log_lumitexel"], b["views"][:, 0])
                     n = config.batch
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
-                lv = float(loss.detach())
+                lv = float(all_sum(loss.detach().reshape(1), ctx).item()) / ctx.world  # the global batch's mean
                 if n == config.batch:
                     window_plain.append(lv)
                 else:
                     window_swap.append(lv)
                     window_plain.append(lv / 4.0)
-                samples += n
+                samples += n  # the global batch: n counts every rank's samples
                 step = i + 1
                 if step % config.eval_every == 0 or step == config.steps:
                     row = log(step)
-                    bar.set_postfix(heldout=f"{row['heldout_loss']:.3g}")
+                    if row is not None:
+                        bar.set_postfix(heldout=f"{row['heldout_loss']:.3g}")
                 if step % config.checkpoint_every == 0 and step != config.steps:
-                    _save_checkpoint(run_dir, model, opt, step, config, digest, device,
+                    _save_checkpoint(run_dir, model, opt, step, config, digest, ctx,
                                      wall_before + time.perf_counter() - t0)
-                if time_limit is not None and step != config.steps and time.perf_counter() - t_call >= time_limit:
-                    # chunk over: evaluate here unless just done (held-out eval uses no RNG, so the
-                    # resumed run still equals an uninterrupted one), then checkpoint below at `step`
+                # chunk over: every rank stops after the same step (any rank's clock decides)
+                if time_limit is not None and step != config.steps and \
+                        any_rank(time.perf_counter() - t_call >= time_limit, ctx):
+                    # evaluate here unless just done (held-out eval uses no RNG, so the resumed run still
+                    # equals an uninterrupted one), then checkpoint below at `step`
                     stopped = True
                     if step % config.eval_every != 0:
                         log(step)
                     break
             bar.close()
             end = step if stopped else max(start, config.steps)
-            if heldout is None:  # nothing to run (resumed at or past the end): evaluate what is there
+            if heldout is None and ctx.is_main:  # nothing run (resumed at or past the end): evaluate what is there
                 heldout = _evaluate(model, held)
         loop_s = time.perf_counter() - t0
         ran = end - start
-        _save_checkpoint(run_dir, model, opt, end, config, digest, device, wall_before + loop_s)
+        _save_checkpoint(run_dir, model, opt, end, config, digest, ctx, wall_before + loop_s)
+        if not ctx.is_main:
+            return {}
 
         note = (f"learned by reconstruction.train: rig {rig.name}, step {end}, seed {config.seed}, "
                 f"held-out loss (Eq. 3) {heldout:.6g}")
@@ -421,7 +469,8 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
                    "lumitexels_per_s": samples / loop_s if samples and loop_s > 0 else None,
                    "num_parameters": int(sum(p.numel() for p in model.parameters())),
                    "num_upper_leds": num_upper, "rig": rig.name, "rig_digest": digest,
-                   "device": str(device), "torch_threads": torch.get_num_threads(),
+                   "device": str(device), "world_size": ctx.world, "backend": ctx.backend,
+                   "torch_threads": torch.get_num_threads(),
                    "config": config.to_json(), "command_line": list(sys.argv)}
         write_bytes_atomic(run_dir / "metrics.json", (json.dumps(summary, indent=2) + "\n").encode())
         return summary
