@@ -47,6 +47,19 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_reconstruct_many(args) -> int:
+    from twin.batch import options_from, report
+
+    from .many import BATCH_FILE, reconstruct_many, table
+    from .pipeline import ReconstructConfig
+
+    over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm), ("network", args.network),
+                              ("device", args.device)) if v is not None}
+    config = replace(ReconstructConfig(), **over)
+    outcomes = reconstruct_many(args.captures, args.output, config, options_from(args, config.device))
+    return report(outcomes, table(outcomes), f"{args.output}/{BATCH_FILE}")
+
+
 def cmd_bench(args) -> int:
     from .bench import bench_reconstruct
 
@@ -76,6 +89,19 @@ def register(sub) -> None:
     s.add_argument("--device", help=f"torch/Warp device: cpu, cuda, cuda:N (default: {rc.device})")
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
+
+    from twin.batch import add_arguments
+
+    s = sub.add_parser("reconstruct-many", help="reconstruct every capture folder under a folder, on Ray (skips "
+                       "finished ones, retries failures, scores against ground truth where there is one)")
+    s.add_argument("captures", help="a folder whose sub-folders are capture folders")
+    s.add_argument("-o", "--output", required=True, help="folder for one reconstruction per capture and batch.json")
+    s.add_argument("--resolution", type=int, help=f"texture grid texels per side (default: {rc.resolution})")
+    s.add_argument("--size-mm", type=float, help="texture grid side in mm (default: detected per capture)")
+    s.add_argument("--network", help=f"'pretrained' or a `hemicube train` run folder (default: {rc.network})")
+    s.add_argument("--device", help=f"cpu or cuda: with cuda, one GPU per task (default: {rc.device})")
+    add_arguments(s)
+    s.set_defaults(func=cmd_reconstruct_many)
 
     s = sub.add_parser("train", help="train the acquisition network (resumable); writes learned patterns; under "
                        "torchrun, data-parallel over the processes (--batch is the global batch)")

@@ -2,7 +2,8 @@
 through `ReconstructionFolder`, and whoever reads a finished one (validation, a batch over many captures)
 reads it here; no other module knows its file names.
 
-    reconstruction.json      format, version, config, network, timings (s) per stage, counts
+    reconstruction.json      format, version, config, network, timings (s) per stage, counts, and the sha256 of
+                             every other file ("files"): written last, so a folder is finished when it verifies
     alignment.npz            the alignment map (primary pixel -> secondary pixel) and homography
     measurements.npz         the extracted measurements (reconstruction.extraction.Measurements)
     latent.exr               72 float32 channels L_0 ... L_71 (reference §4: [a_R, a_G, a_B, s])
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.atomic import atomic_path, write_bytes_atomic
+from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
 
 FORMAT_NAME = "hemicube-reconstruction"
 FORMAT_VERSION = 1
@@ -60,9 +61,22 @@ class ReconstructionFolder:
 
         write_maps(maps, self.dir / MAPS)
 
+    def _files(self) -> list[str]:
+        return sorted(p.relative_to(self.dir).as_posix() for p in self.dir.rglob("*")
+                      if p.is_file() and p.name != SUMMARY)
+
     def write_summary(self, summary: dict) -> None:
-        doc = {"format": FORMAT_NAME, "version": FORMAT_VERSION, **summary}
+        """The summary, with the checksums of every file written before it (so: last)."""
+        files = {rel: file_sha256(self.dir / rel) for rel in self._files()}
+        doc = {"format": FORMAT_NAME, "version": FORMAT_VERSION, **summary, "files": files}
         write_bytes_atomic(self.dir / SUMMARY, json.dumps(doc, indent=1).encode())
+
+    def verify(self) -> list[str]:
+        """Files that are missing, changed or not listed (empty: a finished, intact reconstruction). A folder
+        without a readable summary raises ValueError."""
+        listed = self.summary().get("files", {})
+        bad = [rel for rel, h in listed.items() if not (self.dir / rel).is_file() or file_sha256(self.dir / rel) != h]
+        return sorted(bad + [rel for rel in self._files() if rel not in listed])
 
     def summary(self) -> dict:
         path = self.dir / SUMMARY

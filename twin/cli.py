@@ -128,6 +128,14 @@ def cmd_capture(args) -> int:
     return 0
 
 
+def cmd_capture_many(args) -> int:
+    from twin.batch import options_from, report
+    from twin.capture.many import BATCH_FILE, capture_many, table
+
+    outcomes = capture_many(args.samples, args.output, args.device, options_from(args, args.device))
+    return report(outcomes, table(outcomes), f"{args.output}/{BATCH_FILE}")
+
+
 def cmd_controller_info(args) -> int:
     from twin.capture.backends.led_host import LedController
 
@@ -236,6 +244,16 @@ def register(sub) -> None:
     s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     s.set_defaults(func=cmd_capture)
+
+    from twin.batch import add_arguments
+
+    s = sub.add_parser("capture-many", help="simulated database construction: one capture per sample of a "
+                       "SAMPLES.toml, on Ray (skips finished captures, retries failures)")
+    s.add_argument("samples", help="SAMPLES.toml: defaults and [[sample]] entries (twin/capture/many.py)")
+    s.add_argument("-o", "--output", required=True, help="folder for one capture folder per sample and batch.json")
+    s.add_argument("--device", default="cpu", help="cpu or cuda: with cuda, one GPU per task (default: %(default)s)")
+    add_arguments(s)
+    s.set_defaults(func=cmd_capture_many)
 
     ctl = sub.add_parser("controller", help="the LED controller: its firmware emulator, and a status query"
                          ).add_subparsers(dest="controller_command", required=True)

@@ -140,6 +140,12 @@ class CaptureSession:
         """Listed files whose checksum does not match (empty when all verify)."""
         return [rel for rel in self.files if not self.verified(rel)]
 
+    def complete(self) -> bool:
+        """Every photo of the plan is listed and every listed file verifies: a finished capture."""
+        plan = self.header.get("plan", [])
+        return bool(plan) and all(photo_stem(p["index"], p["camera_index"]) in self.photos for p in plan) \
+            and not self.verify()
+
     def photo(self, index: int, camera_index: int) -> np.ndarray:
         """(H, W, 3) float32 HDR photo k of camera c, checked against the manifest and for finite values."""
         from twin.materials.exr import read_rgb_exr

@@ -1,0 +1,115 @@
+"""`hemicube reconstruct-many CAPTURES_DIR -o OUT` (issue #18): every capture folder under CAPTURES_DIR
+reconstructed into OUT/<name>/, one Ray task each (twin.batch: local by default, a cluster with --address;
+GPU tasks on CUDA), skipping what is finished, retrying failures a bounded number of times.
+
+    OUT/<name>/          the reconstruction (reconstruction.output), replaced whole when done
+    OUT/batch.json       one entry per capture: status, attempts, seconds, and the scores against the
+                         capture's ground truth when it has one (twin captures do); rewritten as jobs end
+A capture counts as finished when batch.json records it done and OUT/<name>/ verifies against its checksums
+and was made with the same reconstruction settings; it is then skipped, keeping its recorded scores. A folder under
+CAPTURES_DIR that is not a readable capture fails (after its retries) with the reason, and the others go on.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from twin.atomic import write_bytes_atomic
+from twin.batch import BatchOptions, Job, outcomes_table, run_batch
+
+from .output import ReconstructionFolder
+from .pipeline import ReconstructConfig, _jsonable
+
+BATCH_FILE = "batch.json"
+# the scores shown in the table: (header, key of the task's result)
+COLUMNS = [("texels", "texels"), ("align px", "alignment.median_px"), ("normal deg", "maps.normal_deg.median"),
+           ("ax %", "maps.alpha_x_pct.median"), ("ay %", "maps.alpha_y_pct.median"),
+           ("rho_d %", "maps.rho_d_pct.median"), ("rho_s %", "maps.rho_s_pct.median"),
+           ("ssim", "render.maps.ssim"), ("goals", "goals")]
+
+
+def reconstruct_one(capture: str, output: str, config: dict) -> dict:
+    """A Ray task: reconstruct one capture and score it when it carries ground truth (flat result dict)."""
+    from reconstruction.metrics import check, flatten_metrics
+    from reconstruction.pipeline import reconstruct
+    from reconstruction.validation import evaluate, thresholds_for
+    from twin.capture.session import CaptureSession
+
+    cfg = _config(config)
+    session = CaptureSession.open(capture)
+    rig = session.rig()
+    recon = reconstruct(capture, output, cfg, progress=False, rig=rig)
+    out = {"texels": int(recon.grid.resolution ** 2), "rig": rig.name,
+           **{f"timings.{k}": float(v) for k, v in recon.timings.items()}}
+    if session.has_ground_truth:
+        metrics, _ = evaluate(capture, recon, rig, device=cfg.device)
+        flat = flatten_metrics(metrics)
+        out.update({k: flat[k] for _, k in COLUMNS if k in flat})
+        rows = check(metrics, thresholds_for(rig.name, cfg.resolution, session.sample))
+        if rows:
+            failed = sum(not r["passed"] for r in rows)
+            out["goals"] = "pass" if not failed else f"{failed} missed"
+    return out
+
+
+def _config(d: dict) -> ReconstructConfig:
+    base = ReconstructConfig()
+    return replace(base, **{k: v for k, v in d.items() if k in ("resolution", "size_mm", "network", "device",
+                                                                 "holdout_line")})
+
+
+def find_captures(root) -> list[Path]:
+    """The sub-folders of `root` (each should be a capture folder), sorted by name."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root}: not a folder of capture folders")
+    found = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not found:
+        raise ValueError(f"{root}: holds no capture folders")
+    return found
+
+
+def reconstruct_many(captures_dir, output, config: ReconstructConfig = ReconstructConfig(),
+                     options: BatchOptions = BatchOptions()) -> list:
+    """Run the batch (module docstring); returns twin.batch.Outcome per capture and writes OUT/batch.json."""
+    out = Path(output)
+    caps = find_captures(captures_dir)
+    if out.resolve() in [c.resolve() for c in caps] or out.resolve() == Path(captures_dir).resolve():
+        raise ValueError(f"{out}: the output folder must not be the captures folder or one of its captures")
+    out.mkdir(parents=True, exist_ok=True)
+    want = {k: v for k, v in asdict(config).items() if k in ("resolution", "size_mm", "network", "device",
+                                                              "holdout_line")}
+    previous = _previous(out)
+    jobs = [Job(c.name, {"capture": str(c), "output": str(out / c.name), "config": want}) for c in caps]
+    full = _jsonable(asdict(config))
+
+    def finished(job: Job):
+        if job.name not in previous:  # scored and recorded, not only written (a kill may fall between)
+            return None
+        folder = ReconstructionFolder(job.args["output"])
+        try:
+            if folder.verify() or folder.summary().get("config") != full:
+                return None
+        except ValueError:  # no (readable) summary: not finished
+            return None
+        return previous[job.name]
+
+    def record(outcomes) -> None:  # after every job that ends: a killed batch keeps what it finished
+        doc = {"captures": str(Path(captures_dir)), "config": full, "outcomes": [o.to_json() for o in outcomes]}
+        write_bytes_atomic(out / BATCH_FILE, (json.dumps(doc, indent=1) + "\n").encode())
+
+    return run_batch(jobs, reconstruct_one, done=finished, options=options, on_update=record)
+
+
+def _previous(out: Path) -> dict:
+    """name -> result of the jobs that batch.json records as done (the scores of skipped captures)."""
+    try:
+        doc = json.loads((out / BATCH_FILE).read_text())
+        return {o["name"]: o["result"] for o in doc["outcomes"] if o["status"] in ("done", "skipped")}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def table(outcomes) -> str:
+    return outcomes_table(outcomes, COLUMNS)

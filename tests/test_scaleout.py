@@ -1,0 +1,108 @@
+"""`hemicube capture-many` and `hemicube reconstruct-many` on a real local Ray (issue #18): tiny mini-rig
+captures made by capture-many, one broken capture folder, reconstruct-many over all three. The broken one is
+reported with its error after its bounded retries and does not stop the batch; finished work is skipped on a
+second run; a reconstruction whose files were changed afterwards is redone; scores come with the captures'
+ground truth. Every command is the installed CLI in its own process, as a user runs it."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("ray")
+
+SAMPLES = """\
+rig = "mini"
+seed = 2
+resolution = 32
+[[sample]]
+name = "ramps"
+[[sample]]
+name = "satin@5"
+folder = "satin5"
+"""
+
+
+def _hemicube(cwd: Path, *args, ok=(0,)) -> subprocess.CompletedProcess:
+    r = subprocess.run([sys.executable, "-m", "hemicube.cli", *args], cwd=cwd, capture_output=True, text=True,
+                       timeout=900)
+    assert r.returncode in ok, r.stdout[-3000:] + r.stderr[-3000:]
+    return r
+
+
+def _outcomes(path: Path) -> dict:
+    return {o["name"]: o for o in json.loads(path.read_text())["outcomes"]}
+
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory):
+    d = tmp_path_factory.mktemp("many")
+    (d / "samples.toml").write_text(SAMPLES)
+    first = _hemicube(d, "capture-many", "samples.toml", "-o", "caps", "--jobs", "2")
+    (d / "caps" / "broken").mkdir()
+    (d / "caps" / "broken" / "manifest.json").write_text("{ not json")
+    recon = _hemicube(d, "reconstruct-many", "caps", "-o", "out", "--resolution", "16", "--retries", "1", "--jobs", "2",
+                      ok=(1,))  # 1: a capture failed
+    return d, first, recon
+
+
+def test_capture_many_makes_verified_captures(batch):
+    from twin.capture.session import CaptureSession
+
+    d, first, _ = batch
+    o = _outcomes(d / "caps" / "batch.json")
+    assert {k: v["status"] for k, v in o.items()} == {"ramps_seed2": "done", "satin5": "done"}
+    for name in o:
+        s = CaptureSession.open(d / "caps" / name)
+        assert s.complete() and s.header["seed"] == 2 and s.header["resolution"] == 32
+    assert "2 done, 0 skipped" in first.stdout
+    again = _hemicube(d, "capture-many", "samples.toml", "-o", "caps")
+    assert "0 done, 2 skipped" in again.stdout
+
+
+def test_reconstruct_many_reports_the_broken_capture_and_scores_the_rest(batch):
+    d, _, recon = batch
+    o = _outcomes(d / "out" / "batch.json")
+    assert o["broken"]["status"] == "failed" and o["broken"]["attempts"] == 2  # 1 + --retries 1
+    assert "manifest" in o["broken"]["error"] and "broken" in recon.stdout
+    for name in ("ramps_seed2", "satin5"):
+        r = o[name]
+        assert r["status"] == "done" and r["attempts"] == 1 and r["seconds"] > 0
+        res = r["result"]
+        assert res["texels"] == 256 and (res["goals"] == "pass" or res["goals"].endswith("missed"))
+        for k in ("alignment.median_px", "maps.normal_deg.median", "maps.alpha_x_pct.median", "render.maps.ssim"):
+            assert isinstance(res[k], float), k
+        assert (d / "out" / name / "maps").is_dir()
+    assert "2 done, 0 skipped (finished before), 1 failed" in recon.stdout
+
+
+def test_reconstruct_many_skips_finished_and_redoes_changed(batch):
+    d, _, _ = batch
+    before = _outcomes(d / "out" / "batch.json")
+    latent = d / "out" / "satin5" / "latent.exr"
+    latent.write_bytes(latent.read_bytes()[:-1] + b"\0")  # changed after it was written
+    r = _hemicube(d, "reconstruct-many", "caps", "-o", "out", "--resolution", "16", "--retries", "0", ok=(1,))
+    o = _outcomes(d / "out" / "batch.json")
+    assert o["ramps_seed2"]["status"] == "skipped" and o["ramps_seed2"]["result"] == before["ramps_seed2"]["result"]
+    assert o["satin5"]["status"] == "done"
+    assert o["broken"]["status"] == "failed" and o["broken"]["attempts"] == 1
+    assert "1 done, 1 skipped (finished before), 1 failed" in r.stdout
+    from reconstruction.output import ReconstructionFolder
+
+    assert ReconstructionFolder(d / "out" / "satin5").verify() == []
+
+
+def test_bad_samples_file_is_one_line(tmp_path):
+    (tmp_path / "s.toml").write_text("rig = 'mini'\n[[sample]]\nname = 'ramps'\ncolour = 3\n")
+    r = _hemicube(tmp_path, "capture-many", "s.toml", "-o", "caps", ok=(2,))
+    assert r.stderr.strip().count("\n") == 0 and "unknown key(s) ['colour']" in r.stderr
+    assert not (tmp_path / "caps").exists()
+
+
+def test_reconstruct_many_needs_captures(tmp_path):
+    (tmp_path / "empty").mkdir()
+    r = _hemicube(tmp_path, "reconstruct-many", "empty", "-o", "out", ok=(2,))
+    assert "holds no capture folders" in r.stderr and r.stderr.strip().count("\n") == 0

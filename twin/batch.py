@@ -1,0 +1,214 @@
+"""Batches of independent jobs on Ray (issue #18): `hemicube capture-many` and `hemicube reconstruct-many`.
+
+    outcomes = run_batch(jobs, task, done=finished, options=BatchOptions(address=None, gpus_per_task=1))
+
+One Ray task per job, on this machine (`ray.init()`: no set-up, as many tasks at a time as it has cores, or
+GPUs for GPU tasks) or on a running cluster (`address`, e.g. "ray://head:10001" or "auto"). Ray schedules;
+this module adds what a database build needs around it:
+* idempotent: `done(job)` is asked in the driver before anything starts; a job whose output is finished and
+  verifies (the caller checks its checksums) is skipped, with the result it reports;
+* bounded retries: a task that raises, or whose worker dies, is submitted again, at most `retries` more
+  times, then reported failed with its last error (one line); the batch goes on;
+* progress on stderr as tasks end, and one outcome per job at the end (status done / skipped / failed,
+  attempts, seconds, the task's result) for the caller's table.
+The task function must be importable by the workers (a module-level function of this project); it takes
+the job's `args` as keyword arguments and returns a JSON-able dict. Jobs write their own output atomically,
+so a killed batch resumes where it stopped when run again.
+Environment: the variables in `PASSED_ENV` that are set in the driver go to every worker through Ray's
+runtime_env (the Warp kernel cache, NCCL's and torch's switches, e.g. NVLink multicast off).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+
+__all__ = ["Job", "Outcome", "BatchOptions", "run_batch", "PASSED_ENV", "outcomes_table"]
+
+PASSED_ENV = ("WARP_CACHE_PATH", "PYTHONPATH", "HEMICUBE_REFERENCE", "NCCL_NVLS_ENABLE", "NCCL_DEBUG",
+              "TORCH_SYMM_MEM_DISABLE_MULTICAST", "NVSHMEM_DISABLE_NVLS", "GENICAM_CACHE_V3_5")
+
+
+@dataclass(frozen=True)
+class Job:
+    name: str            # unique in the batch; names the output
+    args: dict           # keyword arguments of the task function
+
+
+@dataclass
+class Outcome:
+    name: str
+    status: str          # "done", "skipped" or "failed"
+    attempts: int = 0
+    seconds: float = 0.0  # of the last attempt, inside the worker (skipped: 0)
+    result: dict = field(default_factory=dict)
+    error: str | None = None
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "status": self.status, "attempts": self.attempts, "seconds": self.seconds,
+                "result": self.result, "error": self.error}
+
+
+@dataclass(frozen=True)
+class BatchOptions:
+    address: str | None = None   # None: a local Ray started for this batch; else a running cluster's address
+    cpus_per_task: float = 1.0
+    gpus_per_task: float = 0.0   # > 0: GPU tasks (Ray sets CUDA_VISIBLE_DEVICES; the task uses "cuda")
+    num_cpus: int | None = None  # local Ray only: cores it may use (default: all), i.e. tasks at a time
+    retries: int = 2             # submissions after the first, per job
+    progress: bool = True
+
+    def __post_init__(self):
+        if not (isinstance(self.retries, int) and self.retries >= 0):
+            raise ValueError(f"retries must be an integer >= 0, got {self.retries!r}")
+        if not self.cpus_per_task > 0 or self.gpus_per_task < 0:
+            raise ValueError("cpus_per_task must be > 0 and gpus_per_task >= 0")
+        if self.num_cpus is not None and self.num_cpus < 1:
+            raise ValueError(f"num_cpus must be >= 1, got {self.num_cpus}")
+
+
+def _attempt(fn, args: dict, cpus: float) -> dict:
+    """One attempt in a Ray worker: the task's result and its seconds. Errors come back as one line plus
+    the traceback's last frames, so that the driver can report them without Ray's wrapping."""
+    if not os.environ.get("CUDA_VISIBLE_DEVICES"):
+        import torch
+
+        torch.set_num_threads(max(1, int(cpus)))  # the cores Ray gave this task, not all of the machine's
+    t0 = time.perf_counter()
+    try:
+        result = fn(**args)
+    except Exception as e:  # noqa: BLE001 - reported by the driver, retried there
+        tb = traceback.extract_tb(e.__traceback__)[-1]
+        return {"ok": False, "error": f"{type(e).__name__}: {e}".splitlines()[0] +
+                f" ({os.path.basename(tb.filename)}:{tb.lineno})", "seconds": time.perf_counter() - t0}
+    return {"ok": True, "result": result, "seconds": time.perf_counter() - t0}
+
+
+def _say(options: BatchOptions, msg: str) -> None:
+    if options.progress:
+        print(f"[batch] {msg}", file=sys.stderr, flush=True)
+
+
+def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOptions(),
+              on_update=None) -> list[Outcome]:
+    """Run fn(**job.args) for every job not `done` (module docstring); outcomes in the jobs' order.
+    on_update(outcomes) is called after the skips are known and again whenever a job ends (to record progress)."""
+    names = [j.name for j in jobs]
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"job names must be unique; repeated: {dup}")
+    outcomes = {j.name: Outcome(j.name, "pending") for j in jobs}
+    todo = []
+    for j in jobs:
+        finished = done(j) if done is not None else None
+        if finished is not None:
+            outcomes[j.name] = Outcome(j.name, "skipped", result=finished)
+            _say(options, f"{j.name}: finished before, skipped")
+        else:
+            todo.append(j)
+    ordered = lambda: [outcomes[n] for n in names]  # noqa: E731
+    update = (lambda: on_update(ordered())) if on_update is not None else (lambda: None)
+    update()
+    if todo:
+        _run_on_ray(todo, fn, outcomes, options, update)
+    return ordered()
+
+
+def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, update) -> None:
+    import ray
+
+    env = {k: os.environ[k] for k in PASSED_ENV if k in os.environ}
+    started_here = not ray.is_initialized()
+    if started_here:
+        kw = dict(runtime_env={"env_vars": env}, include_dashboard=False, logging_level="ERROR",
+                  log_to_driver=False)
+        if options.address is None:
+            kw["num_cpus"] = options.num_cpus
+        ray.init(address=options.address, **kw)
+    try:
+        if options.gpus_per_task > 0 and ray.cluster_resources().get("GPU", 0) < options.gpus_per_task:
+            raise ValueError(f"GPU tasks asked for, but the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} "
+                             "GPUs; use --device cpu or a cluster with GPUs")
+        task = ray.remote(num_cpus=options.cpus_per_task, num_gpus=options.gpus_per_task, max_retries=0)(_attempt)
+        running = {}
+
+        def submit(job: Job) -> None:
+            outcomes[job.name].attempts += 1
+            running[task.remote(fn, job.args, options.cpus_per_task)] = job
+
+        for j in todo:
+            submit(j)
+        ended, total = 0, len(todo)
+        t0 = time.perf_counter()
+        while running:
+            ready, _ = ray.wait(list(running), num_returns=1)
+            ref = ready[0]
+            job = running.pop(ref)
+            o = outcomes[job.name]
+            try:
+                r = ray.get(ref)
+            except ray.exceptions.RayError as e:  # the worker died (killed, out of memory): retried alike
+                r = {"ok": False, "error": f"{type(e).__name__}: {str(e).splitlines()[0]}", "seconds": 0.0}
+            o.seconds = float(r["seconds"])
+            if r["ok"]:
+                o.status, o.result, o.error = "done", r["result"], None
+            elif o.attempts <= options.retries:
+                _say(options, f"{job.name}: attempt {o.attempts} failed ({r['error']}); retrying")
+                o.error = r["error"]
+                submit(job)
+                continue
+            else:
+                o.status, o.error = "failed", r["error"]
+            ended += 1
+            update()
+            _say(options, f"{ended}/{total} {job.name}: {o.status} after {o.attempts} attempt(s), {o.seconds:.1f} s "
+                 f"({time.perf_counter() - t0:.0f} s since the start)")
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def outcomes_table(outcomes: list[Outcome], columns: list[tuple[str, str]]) -> str:
+    """A plain-text table: name, status, attempts, seconds, then `columns` (header, result key) with the
+    values the task returned, and the error of a failed job."""
+    head = ["name", "status", "attempts", "s"] + [h for h, _ in columns] + ["error"]
+    rows = []
+    for o in outcomes:
+        vals = [o.name, o.status, str(o.attempts), f"{o.seconds:.1f}" if o.status == "done" else "-"]
+        for _, key in columns:
+            v = o.result.get(key) if o.result else None
+            vals.append("-" if v is None else (f"{v:.3g}" if isinstance(v, float) else str(v)))
+        vals.append(o.error or "")
+        rows.append(vals)
+    widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
+    line = lambda r: "  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip()  # noqa: E731
+    return "\n".join([line(head), line(["-" * w for w in widths])] + [line(r) for r in rows])
+
+
+def add_arguments(parser) -> None:
+    """The batch options of the `*-many` commands."""
+    parser.add_argument("--address", help="a running Ray cluster's address (e.g. auto, ray://HEAD:10001); default: "
+                        "a local Ray started for this batch")
+    parser.add_argument("--jobs", type=int, help="local Ray: tasks at a time on the CPU (default: the cores)")
+    parser.add_argument("--gpus-per-task", type=float, help="GPUs per task with --device cuda (default: 1)")
+    parser.add_argument("--retries", type=int, default=2, help="submissions after the first for a failing job "
+                        "(default: %(default)s)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
+
+
+def options_from(args, device: str) -> BatchOptions:
+    gpus = args.gpus_per_task if args.gpus_per_task is not None else (1.0 if device.startswith("cuda") else 0.0)
+    if gpus > 0 and not device.startswith("cuda"):
+        raise ValueError("--gpus-per-task needs --device cuda")
+    return BatchOptions(address=args.address, gpus_per_task=gpus, num_cpus=args.jobs, retries=args.retries,
+                        progress=not args.no_progress)
+
+
+def report(outcomes: list[Outcome], table: str, batch_file) -> int:
+    """Print the table and a one-line verdict; exit code 1 when a job failed."""
+    print(table)
+    n = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
+    print(f"{n['done']} done, {n['skipped']} skipped (finished before), {n['failed']} failed; summary: {batch_file}")
+    return 1 if n["failed"] else 0

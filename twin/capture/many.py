@@ -1,0 +1,132 @@
+"""`hemicube capture-many SAMPLES.toml -o OUT` (issue #18): simulated database construction, one Ray task per
+sample (twin.batch: local by default, a cluster with --address; GPU tasks on CUDA), skipping finished captures,
+retrying failures a bounded number of times.
+
+SAMPLES.toml: top-level keys are defaults for every sample; each [[sample]] names one capture:
+
+    rig = "mini"                 # built-in rig or rig folder (default "mini")
+    seed = 1                     # the capture's seed (default 0, as `hemicube capture`)
+    resolution = 128             # the built-in samples' map resolution (default 128)
+    patterns = "run/patterns.npz"  # learned patterns (a `hemicube train` run's); default: the rig's own
+    [[sample]]
+    name = "satin"               # built-in name, NAME@SEED, or a folder of OpenSVBRDF maps
+    [[sample]]
+    name = "maps/my_leather"     # relative paths are relative to SAMPLES.toml
+    seed = 7                     # any default may be set per sample
+    folder = "leather_7"         # the capture folder's name under OUT (default: NAME_seedSEED, sanitised)
+
+    OUT/<folder>/   the capture (twin.capture.session; resumed when a run was killed)
+    OUT/batch.json  one entry per sample: status, attempts, seconds, photos; rewritten as jobs end
+A capture is finished when its every planned photo is listed and every file verifies; it is then skipped.
+"""
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+from twin.atomic import write_bytes_atomic
+from twin.batch import BatchOptions, Job, outcomes_table, run_batch
+
+from .session import CaptureError, CaptureSession
+
+BATCH_FILE = "batch.json"
+KEYS = {"name", "rig", "seed", "resolution", "patterns", "folder"}
+DEFAULTS = {"rig": "mini", "seed": 0, "resolution": 128, "patterns": None}
+
+
+def _folder_name(name: str, seed: int) -> str:
+    base = Path(name).name if "/" in name else name
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in f"{base}_seed{seed}")
+
+
+def read_samples(path) -> list[dict]:
+    """The samples of a SAMPLES.toml with the defaults applied (paths made absolute); one-line errors."""
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
+        raise ValueError(f"{path}: not a readable samples file ({e})") from None
+    top = {k: v for k, v in doc.items() if k != "sample"}
+    bad = sorted(set(top) - (KEYS - {"name", "folder"}))
+    if bad:
+        raise ValueError(f"{path}: unknown top-level key(s) {bad}; allowed: {sorted(DEFAULTS)} and [[sample]]")
+    entries = doc.get("sample")
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{path}: no [[sample]] entries")
+    here = path.parent
+    out, folders = [], set()
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict) or not isinstance(e.get("name"), str) or not e["name"]:
+            raise ValueError(f"{path}: [[sample]] {i + 1} needs a name")
+        if set(e) - KEYS:
+            raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): unknown key(s) {sorted(set(e) - KEYS)}")
+        s = {**DEFAULTS, **top, **e}
+        if not isinstance(s["seed"], int) or isinstance(s["seed"], bool) or s["seed"] < 0:
+            raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): seed must be an integer >= 0")
+        if not isinstance(s["resolution"], int) or s["resolution"] < 1:
+            raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): resolution must be a positive integer")
+        for k in ("name", "rig", "patterns"):  # a folder or file named relative to SAMPLES.toml
+            v = s[k]
+            if isinstance(v, str) and ("/" in v or k == "patterns") and not Path(v).is_absolute():
+                s[k] = str(here / v)
+        s["folder"] = str(s.get("folder") or _folder_name(e["name"], s["seed"]))
+        if s["folder"] in folders or "/" in s["folder"]:
+            raise ValueError(f"{path}: [[sample]] {i + 1}: folder {s['folder']!r} is repeated or not a plain name")
+        folders.add(s["folder"])
+        out.append(s)
+    return out
+
+
+def capture_one(sample: str, rig: str, seed: int, resolution: int, patterns: str | None, output: str,
+                device: str) -> dict:
+    """A Ray task: run (or resume) one simulated capture; its photo count and the manifest's verdict."""
+    import twin
+    from twin.capture.runner import capture
+
+    learned = None
+    if patterns:
+        from twin.capture.patterns import load_patterns
+
+        learned = load_patterns(patterns)
+    rig_obj = twin.load_rig(rig)
+    if learned is not None:
+        learned.check_rig(rig_obj)
+    out = capture(rig_obj, sample, output, seed=seed, device=device, resolution=resolution, learned=learned,
+                  progress=False)
+    session = CaptureSession.open(out)
+    if not session.complete():
+        raise CaptureError(f"{out}: not complete after the capture ({len(session.verify())} files fail their checksum)")
+    return {"photos": len(session.photos), "rig": session.rig_name, "seed": seed}
+
+
+def capture_many(samples_toml, output, device: str = "cpu", options: BatchOptions = BatchOptions()) -> list:
+    """Run the batch (module docstring); returns twin.batch.Outcome per sample and writes OUT/batch.json."""
+    samples = read_samples(samples_toml)
+    out = Path(output)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [Job(s["folder"], {"sample": s["name"], "rig": s["rig"], "seed": s["seed"], "resolution": s["resolution"],
+                              "patterns": s["patterns"], "output": str(out / s["folder"]), "device": device})
+            for s in samples]
+
+    def finished(job: Job):
+        try:
+            session = CaptureSession.open(job.args["output"])
+        except CaptureError:
+            return None
+        h = session.header
+        same = (h.get("sample") == job.args["sample"] and h.get("seed") == job.args["seed"]
+                and h.get("resolution") == job.args["resolution"])
+        if not (same and session.complete()):
+            return None  # the task resumes it, or refuses a folder that holds another capture
+        return {"photos": len(session.photos), "rig": session.rig_name, "seed": job.args["seed"]}
+
+    def record(outcomes) -> None:
+        doc = {"samples": str(samples_toml), "device": device, "outcomes": [o.to_json() for o in outcomes]}
+        write_bytes_atomic(out / BATCH_FILE, (json.dumps(doc, indent=1) + "\n").encode())
+
+    return run_batch(jobs, capture_one, done=finished, options=options, on_update=record)
+
+
+def table(outcomes) -> str:
+    return outcomes_table(outcomes, [("rig", "rig"), ("seed", "seed"), ("photos", "photos")])
