@@ -48,16 +48,16 @@ def cmd_train(args) -> int:
 
 
 def cmd_reconstruct_many(args) -> int:
-    from twin.batch import options_from, report
+    from twin.batch import RECORD_FILE, options_from, report
 
-    from .many import BATCH_FILE, reconstruct_many, table
+    from .many import reconstruct_many, table
     from .pipeline import ReconstructConfig
 
     over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm), ("network", args.network),
                               ("device", args.device)) if v is not None}
     config = replace(ReconstructConfig(), **over)
     outcomes = reconstruct_many(args.captures, args.output, config, options_from(args, config.device))
-    return report(outcomes, table(outcomes), f"{args.output}/{BATCH_FILE}")
+    return report(outcomes, table(outcomes), f"{args.output}/{RECORD_FILE}")
 
 
 def cmd_bench(args) -> int:

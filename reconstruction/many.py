@@ -3,7 +3,7 @@ reconstructed into OUT/<name>/, one Ray task each (twin.batch: local by default,
 GPU tasks on CUDA), skipping what is finished, retrying failures a bounded number of times.
 
     OUT/<name>/          the reconstruction (reconstruction.output), replaced whole when done
-    OUT/batch.json       one entry per capture: status, attempts, seconds, and the scores against the
+    OUT/batch.json       (twin.batch) one entry per capture: status, attempts, seconds, and the scores against the
                          capture's ground truth when it has one (twin captures do); rewritten as jobs end
 A capture counts as finished when batch.json records it done and OUT/<name>/ verifies against its checksums
 and was made with the same reconstruction settings; it is then skipped, keeping its recorded scores. A folder under
@@ -11,17 +11,14 @@ CAPTURES_DIR that is not a readable capture fails (after its retries) with the r
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from twin.atomic import write_bytes_atomic
-from twin.batch import BatchOptions, Job, outcomes_table, run_batch
+from twin.batch import RECORD_FILE, BatchOptions, Job, outcomes_table, recorded_results, run_batch
 
 from .output import ReconstructionFolder
 from .pipeline import ReconstructConfig, _jsonable
 
-BATCH_FILE = "batch.json"
 # the scores shown in the table: (header, key of the task's result)
 COLUMNS = [("texels", "texels"), ("align px", "alignment.median_px"), ("normal deg", "maps.normal_deg.median"),
            ("ax %", "maps.alpha_x_pct.median"), ("ay %", "maps.alpha_y_pct.median"),
@@ -80,7 +77,7 @@ def reconstruct_many(captures_dir, output, config: ReconstructConfig = Reconstru
     out.mkdir(parents=True, exist_ok=True)
     want = {k: v for k, v in asdict(config).items() if k in ("resolution", "size_mm", "network", "device",
                                                               "holdout_line")}
-    previous = _previous(out)
+    previous = recorded_results(out / RECORD_FILE)
     jobs = [Job(c.name, {"capture": str(c), "output": str(out / c.name), "config": want}) for c in caps]
     full = _jsonable(asdict(config))
 
@@ -95,20 +92,8 @@ def reconstruct_many(captures_dir, output, config: ReconstructConfig = Reconstru
             return None
         return previous[job.name]
 
-    def record(outcomes) -> None:  # after every job that ends: a killed batch keeps what it finished
-        doc = {"captures": str(Path(captures_dir)), "config": full, "outcomes": [o.to_json() for o in outcomes]}
-        write_bytes_atomic(out / BATCH_FILE, (json.dumps(doc, indent=1) + "\n").encode())
-
-    return run_batch(jobs, reconstruct_one, done=finished, options=options, on_update=record)
-
-
-def _previous(out: Path) -> dict:
-    """name -> result of the jobs that batch.json records as done (the scores of skipped captures)."""
-    try:
-        doc = json.loads((out / BATCH_FILE).read_text())
-        return {o["name"]: o["result"] for o in doc["outcomes"] if o["status"] in ("done", "skipped")}
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}
+    return run_batch(jobs, reconstruct_one, done=finished, options=options, record=out / RECORD_FILE,
+                     header={"captures": str(Path(captures_dir)), "config": full})
 
 
 def table(outcomes) -> str:

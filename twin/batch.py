@@ -19,13 +19,18 @@ runtime_env (the Warp kernel cache, NCCL's and torch's switches, e.g. NVLink mul
 """
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
 import traceback
 from dataclasses import dataclass, field
+from pathlib import Path
 
-__all__ = ["Job", "Outcome", "BatchOptions", "run_batch", "PASSED_ENV", "outcomes_table"]
+__all__ = ["Job", "Outcome", "BatchOptions", "run_batch", "PASSED_ENV", "outcomes_table", "write_record",
+           "recorded_results", "RECORD_FILE"]
+
+RECORD_FILE = "batch.json"  # the record of a batch, in its output folder
 
 PASSED_ENV = ("WARP_CACHE_PATH", "PYTHONPATH", "HEMICUBE_REFERENCE", "NCCL_NVLS_ENABLE", "NCCL_DEBUG",
               "TORCH_SYMM_MEM_DISABLE_MULTICAST", "NVSHMEM_DISABLE_NVLS", "GENICAM_CACHE_V3_5")
@@ -91,10 +96,28 @@ def _say(options: BatchOptions, msg: str) -> None:
         print(f"[batch] {msg}", file=sys.stderr, flush=True)
 
 
+def write_record(path, header: dict, outcomes: list[Outcome]) -> None:
+    """The batch's record file (`batch.json`: the header's keys and "outcomes"), replaced atomically."""
+    from twin.atomic import write_bytes_atomic
+
+    doc = {**header, "outcomes": [o.to_json() for o in outcomes]}
+    write_bytes_atomic(path, (json.dumps(doc, indent=1) + "\n").encode())
+
+
+def recorded_results(path) -> dict:
+    """name -> result of the jobs a record file lists as done or skipped ({} when there is none)."""
+    try:
+        doc = json.loads(Path(path).read_text())
+        return {o["name"]: o["result"] for o in doc["outcomes"] if o["status"] in ("done", "skipped")}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
 def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOptions(),
-              on_update=None) -> list[Outcome]:
-    """Run fn(**job.args) for every job not `done` (module docstring); outcomes in the jobs' order.
-    on_update(outcomes) is called after the skips are known and again whenever a job ends (to record progress)."""
+              record=None, header: dict | None = None) -> list[Outcome]:
+    """Run fn(**job.args) for every job not `done` (module docstring); outcomes in the jobs' order. With
+    `record` (a path), the record file is written once the skips are known and again whenever a job ends, so
+    that a killed batch keeps what it finished; "pending" marks a job not ended yet."""
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -109,7 +132,7 @@ def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOp
         else:
             todo.append(j)
     ordered = lambda: [outcomes[n] for n in names]  # noqa: E731
-    update = (lambda: on_update(ordered())) if on_update is not None else (lambda: None)
+    update = (lambda: write_record(record, header or {}, ordered())) if record is not None else (lambda: None)
     update()
     if todo:
         _run_on_ray(todo, fn, outcomes, options, update)
@@ -117,7 +140,10 @@ def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOp
 
 
 def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, update) -> None:
-    import ray
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("batches run on Ray, which is not installed: pip install 'hemicube-twin[scale]'") from None
 
     env = {k: os.environ[k] for k in PASSED_ENV if k in os.environ}
     started_here = not ray.is_initialized()

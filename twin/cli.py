@@ -129,11 +129,11 @@ def cmd_capture(args) -> int:
 
 
 def cmd_capture_many(args) -> int:
-    from twin.batch import options_from, report
-    from twin.capture.many import BATCH_FILE, capture_many, table
+    from twin.batch import RECORD_FILE, options_from, report
+    from twin.capture.many import capture_many, table
 
     outcomes = capture_many(args.samples, args.output, args.device, options_from(args, args.device))
-    return report(outcomes, table(outcomes), f"{args.output}/{BATCH_FILE}")
+    return report(outcomes, table(outcomes), f"{args.output}/{RECORD_FILE}")
 
 
 def cmd_controller_info(args) -> int:

@@ -16,21 +16,18 @@ SAMPLES.toml: top-level keys are defaults for every sample; each [[sample]] name
     folder = "leather_7"         # the capture folder's name under OUT (default: NAME_seedSEED, sanitised)
 
     OUT/<folder>/   the capture (twin.capture.session; resumed when a run was killed)
-    OUT/batch.json  one entry per sample: status, attempts, seconds, photos; rewritten as jobs end
+    OUT/batch.json  (twin.batch) one entry per sample: status, attempts, seconds, photos; rewritten as jobs end
 A capture is finished when its every planned photo is listed and every file verifies; it is then skipped.
 """
 from __future__ import annotations
 
-import json
 import tomllib
 from pathlib import Path
 
-from twin.atomic import write_bytes_atomic
-from twin.batch import BatchOptions, Job, outcomes_table, run_batch
+from twin.batch import RECORD_FILE, BatchOptions, Job, outcomes_table, run_batch
 
 from .session import CaptureError, CaptureSession
 
-BATCH_FILE = "batch.json"
 KEYS = {"name", "rig", "seed", "resolution", "patterns", "folder"}
 DEFAULTS = {"rig": "mini", "seed": 0, "resolution": 128, "patterns": None}
 
@@ -121,11 +118,8 @@ def capture_many(samples_toml, output, device: str = "cpu", options: BatchOption
             return None  # the task resumes it, or refuses a folder that holds another capture
         return {"photos": len(session.photos), "rig": session.rig_name, "seed": job.args["seed"]}
 
-    def record(outcomes) -> None:
-        doc = {"samples": str(samples_toml), "device": device, "outcomes": [o.to_json() for o in outcomes]}
-        write_bytes_atomic(out / BATCH_FILE, (json.dumps(doc, indent=1) + "\n").encode())
-
-    return run_batch(jobs, capture_one, done=finished, options=options, on_update=record)
+    return run_batch(jobs, capture_one, done=finished, options=options, record=out / RECORD_FILE,
+                     header={"samples": str(samples_toml), "device": device})
 
 
 def table(outcomes) -> str:
