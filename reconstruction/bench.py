@@ -51,6 +51,29 @@ def _texels(rig, model, n: int, seed: int, device: str, exact: bool):
             np.concatenate(lumi) if exact else None)
 
 
+def _normalise_encoder(model, learned: np.ndarray, device: str) -> None:
+    """Give an untrained network the BatchNorm statistics of these measurements, as training would, so that its
+    latents are of the size a trained encoder gives and fine-tuning stays finite (with the initial statistics,
+    mean 0 and variance 1, the raw measurements passed through, the decoded exp overflowed and the fine-tuned
+    latents ended non-finite: `latent72 must be finite`, 2026-11-23, CPU and CUDA).
+    The weights stay untrained: speed does not depend on them."""
+    import torch
+
+    bns = [m for m in model.encoder.modules() if isinstance(m, torch.nn.BatchNorm1d)]
+    model.eval()  # no dropout, no measurement noise: only the BatchNorm layers collect statistics
+    for m in bns:
+        m.reset_running_stats()
+        m.momentum = None  # a cumulative average over the chunks below
+        m.train()
+    x = torch.from_numpy(np.asarray(learned, np.float32)).to(device)
+    with torch.no_grad():
+        for i in range(0, len(x) - 1, 4096):  # chunks of >= 2 samples (BatchNorm needs two in training mode)
+            model.encode(x[i:i + 4096])
+    for m in bns:
+        m.momentum = 0.1
+    model.eval()
+
+
 def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=None, seed=0,
                       baseline_texels=1000) -> dict:
     import torch
@@ -84,6 +107,8 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     # an untrained decoder's output is no lumitexel (exp overflows): the fit then takes the texels' exact
     # lumitexels, the same work per texel
     learned, lines, pos, W, exact = _texels(rig, model, texels, seed, dev, exact=source == "untrained")
+    if source == "untrained":
+        _normalise_encoder(model, learned, dev)
 
     t = time.perf_counter()
     z = decode(model, learned, device=dev)

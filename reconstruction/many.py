@@ -3,6 +3,7 @@ reconstructed into OUT/<name>/, one Ray task each (twin.batch: local by default,
 GPU tasks on CUDA), skipping what is finished, retrying failures a bounded number of times.
 
     OUT/<name>/          the reconstruction (reconstruction.output), replaced whole when done
+    OUT/logs/<name>.log  what each job printed (stages, timings, a failure's traceback), every attempt
     OUT/batch.json       (twin.batch) one entry per capture: status, attempts, seconds, and the scores against the
                          capture's ground truth when it has one (twin captures do); rewritten as jobs end
 A capture counts as finished when batch.json records it done and OUT/<name>/ verifies against its checksums
@@ -14,7 +15,7 @@ from __future__ import annotations
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from twin.batch import RECORD_FILE, BatchOptions, Job, outcomes_table, recorded_results, run_batch
+from twin.batch import LOG_FOLDER, RECORD_FILE, BatchOptions, Job, outcomes_table, recorded_results, run_batch
 
 from .output import ReconstructionFolder
 from .pipeline import ReconstructConfig, _jsonable
@@ -36,7 +37,7 @@ def reconstruct_one(capture: str, output: str, config: dict) -> dict:
     cfg = _config(config)
     session = CaptureSession.open(capture)
     rig = session.rig()
-    recon = reconstruct(capture, output, cfg, progress=False, rig=rig)
+    recon = reconstruct(capture, output, cfg, progress=True, rig=rig)  # stage lines: to the job's log
     out = {"texels": int(recon.grid.resolution ** 2), "rig": rig.name,
            **{f"timings.{k}": float(v) for k, v in recon.timings.items()}}
     if session.has_ground_truth:
@@ -57,11 +58,12 @@ def _config(d: dict) -> ReconstructConfig:
 
 
 def find_captures(root) -> list[Path]:
-    """The sub-folders of `root` (each should be a capture folder), sorted by name."""
+    """The sub-folders of `root` (each should be a capture folder), sorted by name; hidden ones and the `logs/`
+    folder that capture-many writes beside its captures are not captures."""
     root = Path(root)
     if not root.is_dir():
         raise ValueError(f"{root}: not a folder of capture folders")
-    found = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    found = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and p.name != LOG_FOLDER)
     if not found:
         raise ValueError(f"{root}: holds no capture folders")
     return found
@@ -93,7 +95,7 @@ def reconstruct_many(captures_dir, output, config: ReconstructConfig = Reconstru
         return previous[job.name]
 
     return run_batch(jobs, reconstruct_one, done=finished, options=options, record=out / RECORD_FILE,
-                     header={"captures": str(Path(captures_dir)), "config": full})
+                     header={"captures": str(Path(captures_dir)), "config": full}, logs=out / LOG_FOLDER)
 
 
 def table(outcomes) -> str:

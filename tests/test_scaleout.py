@@ -56,6 +56,7 @@ def test_capture_many_makes_verified_captures(batch):
     o = _outcomes(d / "caps" / "batch.json")
     assert {k: v["status"] for k, v in o.items()} == {"ramps_seed2": "done", "satin5": "done"}
     for name in o:
+        assert "--- done in" in (d / "caps" / "logs" / f"{name}.log").read_text()
         s = CaptureSession.open(d / "caps" / name)
         assert s.complete() and s.header["seed"] == 2 and s.header["resolution"] == 32
     assert "2 done, 0 skipped" in first.stdout
@@ -76,6 +77,10 @@ def test_reconstruct_many_reports_the_broken_capture_and_scores_the_rest(batch):
         for k in ("alignment.median_px", "maps.normal_deg.median", "maps.alpha_x_pct.median", "render.maps.ssim"):
             assert isinstance(res[k], float), k
         assert (d / "out" / name / "maps").is_dir()
+        log = (d / "out" / "logs" / f"{name}.log").read_text()
+        assert "--- attempt 1" in log and "[reconstruct] fitting" in log and "--- done in" in log
+    broken_log = (d / "out" / "logs" / "broken.log").read_text()
+    assert broken_log.count("--- attempt") == 2 and "Traceback" in broken_log
     assert "2 done, 0 skipped (finished before), 1 failed" in recon.stdout
 
 

@@ -19,6 +19,7 @@ runtime_env (the Warp kernel cache, NCCL's and torch's switches, e.g. NVLink mul
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -28,9 +29,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 __all__ = ["Job", "Outcome", "BatchOptions", "run_batch", "PASSED_ENV", "outcomes_table", "write_record",
-           "recorded_results", "RECORD_FILE"]
+           "recorded_results", "RECORD_FILE", "LOG_FOLDER"]
 
 RECORD_FILE = "batch.json"  # the record of a batch, in its output folder
+LOG_FOLDER = "logs"         # the jobs' logs, in its output folder
 
 PASSED_ENV = ("WARP_CACHE_PATH", "PYTHONPATH", "HEMICUBE_REFERENCE", "NCCL_NVLS_ENABLE", "NCCL_DEBUG",
               "TORCH_SYMM_MEM_DISABLE_MULTICAST", "NVSHMEM_DISABLE_NVLS", "GENICAM_CACHE_V3_5")
@@ -74,21 +76,28 @@ class BatchOptions:
             raise ValueError(f"num_cpus must be >= 1, got {self.num_cpus}")
 
 
-def _attempt(fn, args: dict, cpus: float) -> dict:
+def _attempt(fn, args: dict, cpus: float, log: str | None, attempt: int) -> dict:
     """One attempt in a Ray worker: the task's result and its seconds. Errors come back as one line plus
-    the traceback's last frames, so that the driver can report them without Ray's wrapping."""
+    the place they were raised, so that the driver can report them without Ray's wrapping. With `log`, what
+    the task prints (its stage lines, progress bars, the full traceback of a failure) is appended there."""
     if not os.environ.get("CUDA_VISIBLE_DEVICES"):
         import torch
 
         torch.set_num_threads(max(1, int(cpus)))  # the cores Ray gave this task, not all of the machine's
-    t0 = time.perf_counter()
-    try:
-        result = fn(**args)
-    except Exception as e:  # noqa: BLE001 - reported by the driver, retried there
-        tb = traceback.extract_tb(e.__traceback__)[-1]
-        return {"ok": False, "error": f"{type(e).__name__}: {e}".splitlines()[0] +
-                f" ({os.path.basename(tb.filename)}:{tb.lineno})", "seconds": time.perf_counter() - t0}
-    return {"ok": True, "result": result, "seconds": time.perf_counter() - t0}
+    with open(log, "a", buffering=1) if log else contextlib.nullcontext(None) as out, \
+            contextlib.redirect_stdout(out or sys.stdout), contextlib.redirect_stderr(out or sys.stderr):
+        print(f"--- attempt {attempt}, {time.strftime('%Y-%m-%d %H:%M:%S')}, pid {os.getpid()}, "
+              f"CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', '')!r}")
+        t0 = time.perf_counter()
+        try:
+            result = fn(**args)
+        except Exception as e:  # noqa: BLE001 - reported by the driver, retried there
+            traceback.print_exc()
+            tb = traceback.extract_tb(e.__traceback__)[-1]
+            return {"ok": False, "error": f"{type(e).__name__}: {e}".splitlines()[0] +
+                    f" ({os.path.basename(tb.filename)}:{tb.lineno})", "seconds": time.perf_counter() - t0}
+        print(f"--- done in {time.perf_counter() - t0:.1f} s")
+        return {"ok": True, "result": result, "seconds": time.perf_counter() - t0}
 
 
 def _say(options: BatchOptions, msg: str) -> None:
@@ -114,10 +123,11 @@ def recorded_results(path) -> dict:
 
 
 def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOptions(),
-              record=None, header: dict | None = None) -> list[Outcome]:
+              record=None, header: dict | None = None, logs=None) -> list[Outcome]:
     """Run fn(**job.args) for every job not `done` (module docstring); outcomes in the jobs' order. With
     `record` (a path), the record file is written once the skips are known and again whenever a job ends, so
-    that a killed batch keeps what it finished; "pending" marks a job not ended yet."""
+    that a killed batch keeps what it finished; "pending" marks a job not ended yet. With `logs` (a folder), each
+    job's output goes to logs/<name>.log, every attempt appended."""
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -135,11 +145,13 @@ def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOp
     update = (lambda: write_record(record, header or {}, ordered())) if record is not None else (lambda: None)
     update()
     if todo:
-        _run_on_ray(todo, fn, outcomes, options, update)
+        if logs is not None:
+            Path(logs).mkdir(parents=True, exist_ok=True)
+        _run_on_ray(todo, fn, outcomes, options, update, logs)
     return ordered()
 
 
-def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, update) -> None:
+def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, update, logs) -> None:
     try:
         import ray
     except ImportError:
@@ -161,8 +173,10 @@ def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, upda
         running = {}
 
         def submit(job: Job) -> None:
-            outcomes[job.name].attempts += 1
-            running[task.remote(fn, job.args, options.cpus_per_task)] = job
+            o = outcomes[job.name]
+            o.attempts += 1
+            log = str(Path(logs).resolve() / f"{job.name}.log") if logs is not None else None
+            running[task.remote(fn, job.args, options.cpus_per_task, log, o.attempts)] = job
 
         for j in todo:
             submit(j)

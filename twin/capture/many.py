@@ -16,6 +16,7 @@ SAMPLES.toml: top-level keys are defaults for every sample; each [[sample]] name
     folder = "leather_7"         # the capture folder's name under OUT (default: NAME_seedSEED, sanitised)
 
     OUT/<folder>/   the capture (twin.capture.session; resumed when a run was killed)
+    OUT/logs/<folder>.log  what each job printed (progress, a failure's traceback), every attempt
     OUT/batch.json  (twin.batch) one entry per sample: status, attempts, seconds, photos; rewritten as jobs end
 A capture is finished when its every planned photo is listed and every file verifies; it is then skipped.
 """
@@ -24,7 +25,7 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-from twin.batch import RECORD_FILE, BatchOptions, Job, outcomes_table, run_batch
+from twin.batch import LOG_FOLDER, RECORD_FILE, BatchOptions, Job, outcomes_table, run_batch
 
 from .session import CaptureError, CaptureSession
 
@@ -90,7 +91,7 @@ def capture_one(sample: str, rig: str, seed: int, resolution: int, patterns: str
     if learned is not None:
         learned.check_rig(rig_obj)
     out = capture(rig_obj, sample, output, seed=seed, device=device, resolution=resolution, learned=learned,
-                  progress=False)
+                  progress=True)  # to the job's log
     session = CaptureSession.open(out)
     if not session.complete():
         raise CaptureError(f"{out}: not complete after the capture ({len(session.verify())} files fail their checksum)")
@@ -119,7 +120,7 @@ def capture_many(samples_toml, output, device: str = "cpu", options: BatchOption
         return {"photos": len(session.photos), "rig": session.rig_name, "seed": job.args["seed"]}
 
     return run_batch(jobs, capture_one, done=finished, options=options, record=out / RECORD_FILE,
-                     header={"samples": str(samples_toml), "device": device})
+                     header={"samples": str(samples_toml), "device": device}, logs=out / LOG_FOLDER)
 
 
 def table(outcomes) -> str:
