@@ -73,3 +73,32 @@ def test_bench_capture_whole_plan_and_checks(capsys, monkeypatch):
     monkeypatch.setattr(imaging, "render_reference", lambda *a, **kw: plain(*a, **kw) * np.float32(1.001))
     rc, res, err = _run(CAPTURE, capsys)
     assert rc == 1 and "render_sample_primary" in err
+
+
+def test_untrained_bench_network_gets_the_measurements_batch_statistics():
+    """`bench reconstruct` without a trained network gives the untrained encoder the BatchNorm statistics of the
+    bench's own measurements (else its fine-tuning overflows on the paper rig): each BatchNorm's running mean and
+    variance become the mean and unbiased variance of its input over those measurements, weights untouched."""
+    import torch
+
+    import twin
+    from reconstruction.bench import _normalise_encoder
+    from reconstruction.latents import decode
+    from reconstruction.network import AcquisitionNet
+    from reconstruction.train import TrainConfig
+
+    rig = twin.load_rig("mini")
+    torch.manual_seed(0)
+    model = AcquisitionNet(TrainConfig().network_config(int((~np.asarray(rig.is_bottom)).sum()))).eval()
+    weights = {k: v.clone() for k, v in model.state_dict().items() if "running" not in k and "num_batches" not in k}
+    learned = (torch.rand(300, 2, 32, generator=torch.Generator().manual_seed(1)) * 500).numpy()
+    _normalise_encoder(model, learned, "cpu")
+    first = model.encoder.albedo_branch
+    with torch.no_grad():
+        pre = first[0](torch.from_numpy(learned).reshape(300, -1))
+    assert torch.allclose(first[1].running_mean, pre.mean(0), rtol=1e-4, atol=1e-4)
+    assert torch.allclose(first[1].running_var, pre.var(0, unbiased=True), rtol=1e-4)
+    assert not model.training and first[1].momentum == 0.1
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in weights.items())
+    z = decode(model, learned)
+    assert np.isfinite(z).all() and np.abs(z).max() < 100

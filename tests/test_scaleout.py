@@ -111,3 +111,36 @@ def test_reconstruct_many_needs_captures(tmp_path):
     (tmp_path / "empty").mkdir()
     r = _hemicube(tmp_path, "reconstruct-many", "empty", "-o", "out", ok=(2,))
     assert "holds no capture folders" in r.stderr and r.stderr.strip().count("\n") == 0
+
+
+def flaky(marker: str, crash: bool) -> dict:
+    """A job that fails its first attempt (raising, or killing its worker process outright) and then works."""
+    import os
+
+    m = Path(marker)
+    if not m.exists():
+        m.write_text("attempted")
+        if crash:
+            os._exit(3)  # the worker dies: no exception reaches Ray's task
+        raise RuntimeError("first attempt fails")
+    return {"ok": True}
+
+
+def test_run_batch_retries_raised_errors_and_dead_workers(tmp_path):
+    from ray import cloudpickle
+
+    from twin.batch import BatchOptions, Job, run_batch
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
+    jobs = [Job("raises", {"marker": str(tmp_path / "a"), "crash": False}),
+            Job("dies", {"marker": str(tmp_path / "b"), "crash": True})]
+    out = {o.name: o for o in run_batch(jobs, flaky, options=BatchOptions(num_cpus=2, retries=1, progress=False),
+                                        record=tmp_path / "batch.json", logs=tmp_path / "logs")}
+    assert out["raises"].status == "done" and out["raises"].attempts == 2
+    assert out["dies"].status == "done" and out["dies"].attempts == 2
+    rec = json.loads((tmp_path / "batch.json").read_text())["outcomes"]
+    assert [o["status"] for o in rec] == ["done", "done"]
+    assert "RuntimeError: first attempt fails" in (tmp_path / "logs" / "raises.log").read_text()
+    none_left = run_batch(jobs[:1], flaky, options=BatchOptions(num_cpus=1, retries=0, progress=False),
+                          done=lambda job: {"from": "before"})
+    assert none_left[0].status == "skipped" and none_left[0].result == {"from": "before"}
