@@ -19,6 +19,7 @@ def cmd_validate(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import calibration.cli
     import reconstruction.cli
     import twin.cli
 
@@ -26,6 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
     twin.cli.register(sub)
     reconstruction.cli.register(sub)
+    calibration.cli.register(sub)
 
     s = sub.add_parser("validate", help="the main job: check the twin end to end and report")
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")

@@ -1,0 +1,91 @@
+"""`hemicube calibrate` (issue #16): calibration captures in the twin, the procedures of this package on their
+photos, a calibrated rig folder and a report scored against the twin's truth. Built so far: the cameras."""
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from .cameras import (CalibrationError, calibrate_intrinsics, calibrated_camera, detect, locate, score)
+
+# issue #16's goals for the cameras (anchors in ../shared/notes/anchors-devices-calibration-design.md)
+CAMERA_GOALS = {"rms_px": 0.3, "focal_pct": 0.1}
+
+
+def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 2, progress: bool = True) -> tuple:
+    """Photograph a ChArUco board with every camera of the TRUE rig (twin), calibrate each camera from those
+    photos alone, and return (the nominal rig with the calibrated cameras, a report scoring them against the
+    truth, and the nominal cameras' own errors for comparison)."""
+    import numpy as np
+
+    from twin.targets.charuco import CharucoTarget, calibration_poses, flat_pose
+
+    target = CharucoTarget()
+    rng = np.random.default_rng([int(seed), 18])
+    size = nominal.sample.max_size * 0.8
+    cams, report = {}, {}
+    for name, cam in truth.cameras.items():
+        dets = []
+        for k, (R, t) in enumerate(calibration_poses(cam, target, truth.sample, views, seed)):
+            label = f"{name} view {k}"
+            dets.append(detect(target.photo(cam, R, t, rng, supersample=supersample), target, label))
+            if progress:
+                print(f"[calibrate] {label}: {len(dets[-1].ids)} corners", file=sys.stderr, flush=True)
+        intr = calibrate_intrinsics(dets, target, (cam.width, cam.height))
+        Rf, tf = flat_pose(target, truth.sample)
+        R, t = locate(detect(target.photo(cam, Rf, tf, rng, supersample=supersample), target, f"{name} flat"),
+                      target, intr.K, intr.dist, Rf, tf)
+        cams[name] = calibrated_camera(nominal.cameras[name], intr, R, t)
+        s = score(cam, cams[name], truth.sample, size)
+        goals = {"rms_px": intr.rms_px <= CAMERA_GOALS["rms_px"], "focal_pct": s["focal_pct"] <= CAMERA_GOALS["focal_pct"]}
+        report[name] = {"views": intr.views, "corners": intr.corners, "rms_px": intr.rms_px, **s,
+                        "nominal_error": score(cam, nominal.cameras[name], truth.sample, size),
+                        "goals": goals, "passed": all(goals.values())}
+    return replace(nominal, cameras=cams), report
+
+
+def cmd_calibrate(args) -> int:
+    import twin
+    from twin.atomic import atomic_folder
+    from twin.rig.format import save_rig
+    from twin.rig.perturb import perturb_cameras
+
+    if args.what != "cameras":
+        raise ValueError(f"calibrate {args.what!r}: only 'cameras' is built (issue #16)")
+    if args.views < 4:
+        raise ValueError(f"--views {args.views}: the intrinsics need >= 4 views of the board")
+    nominal = twin.load_rig(args.rig)
+    truth = perturb_cameras(nominal, args.perturb) if args.perturb is not None else nominal
+    try:
+        rig, report = calibrate_cameras(nominal, truth, args.views, args.seed, progress=not args.no_progress)
+    except CalibrationError as e:
+        raise ValueError(f"calibration failed, no rig written: {e}") from None
+    doc = {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed, "views": args.views,
+           "goals": CAMERA_GOALS, "cameras": report}
+    with atomic_folder(Path(args.output), overwrite=True) as tmp:  # nothing is left from a failed run
+        save_rig(rig, tmp / "rig")
+        save_rig(truth, tmp / "truth")  # the truth beside the result, for scoring
+        (tmp / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    w = max(len(n) for n in report)
+    for name, r in report.items():
+        print(f"{name:<{w}}  RMS {r['rms_px']:.3f} px  focal {r['focal_pct']:.4f}%  principal {r['principal_px']:.2f} px  "
+              f"centre {r['centre_mm']:.2f} mm  rotation {r['rotation_deg']:.3f} deg  sample {r['sample_px_median']:.3f} px "
+              f"median (nominal rig: {r['nominal_error']['sample_px_median']:.2f})  {'pass' if r['passed'] else 'FAIL'}")
+    print(f"calibrated rig: {args.output}/rig (truth: {args.output}/truth, report: {args.output}/report.json)")
+    return 0 if all(r["passed"] for r in report.values()) else 1
+
+
+def register(sub) -> None:
+    s = sub.add_parser("calibrate", help="calibrate from photographs of targets in the twin; write a calibrated rig "
+                       "folder and a report scored against the truth (built: cameras)")
+    s.add_argument("what", choices=("cameras",), help="what to calibrate")
+    s.add_argument("--rig", default="paper", help="built-in rig or rig folder: the nominal values (default: %(default)s)")
+    s.add_argument("--perturb", type=int, metavar="SEED", help="the true device is the nominal rig with seeded "
+                   "errors (twin.rig.perturb); default: the nominal rig itself")
+    s.add_argument("--views", type=int, default=8, help="board poses per camera (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the board poses and the photos' noise (default: "
+                   "%(default)s)")
+    s.add_argument("-o", "--output", required=True, help="folder for rig/, truth/ and report.json (replaced)")
+    s.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
+    s.set_defaults(func=cmd_calibrate)
