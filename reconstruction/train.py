@@ -388,13 +388,16 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
         with open(mpath, "a") if ctx.is_main else contextlib.nullcontext() as mf:
             def log(step: int):
                 nonlocal last_eval_t, last_samples, window_plain, window_swap, heldout
+                # the window's losses stay on the device until here (no host sync per step); every rank takes
+                # part in the sum over ranks: the global batch's mean loss, step by step
+                plain, swap = (float((all_sum(torch.stack(w).double(), ctx) / ctx.world).mean()) if w else None
+                               for w in (window_plain, window_swap))
+                window_plain, window_swap = [], []
                 if not ctx.is_main:
                     return None
                 now = time.perf_counter()
                 heldout = _evaluate(model, held)
-                row = {"step": step,
-                       "train_loss": float(np.mean(window_plain)) if window_plain else None,
-                       "train_swap_loss": float(np.mean(window_swap)) if window_swap else None,
+                row = {"step": step, "train_loss": plain, "train_swap_loss": swap,
                        "heldout_loss": heldout, "wall_s": wall_before + (now - t0),
                        "lumitexels_per_s": ((samples - last_samples) / (now - last_eval_t)
                                             if samples > last_samples else None)}
@@ -402,7 +405,6 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
                 mf.flush()
                 os.fsync(mf.fileno())
                 last_eval_t, last_samples = time.perf_counter(), samples
-                window_plain, window_swap = [], []
                 return row
 
             if start == 0:
@@ -422,7 +424,7 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
-                lv = float(all_sum(loss.detach().reshape(1), ctx).item()) / ctx.world  # the global batch's mean
+                lv = loss.detach()
                 if n == config.batch:
                     window_plain.append(lv)
                 else:
