@@ -51,10 +51,12 @@ def reconstruct_one(capture: str, output: str, config: dict) -> dict:
     return out
 
 
+# the settings a batch passes to its tasks (the command's options); the rest are ReconstructConfig's defaults
+TASK_SETTINGS = ("resolution", "size_mm", "network", "device", "holdout_line")
+
+
 def _config(d: dict) -> ReconstructConfig:
-    base = ReconstructConfig()
-    return replace(base, **{k: v for k, v in d.items() if k in ("resolution", "size_mm", "network", "device",
-                                                                 "holdout_line")})
+    return replace(ReconstructConfig(), **{k: v for k, v in d.items() if k in TASK_SETTINGS})
 
 
 def find_captures(root) -> list[Path]:
@@ -77,8 +79,10 @@ def reconstruct_many(captures_dir, output, config: ReconstructConfig = Reconstru
     if out.resolve() in [c.resolve() for c in caps] or out.resolve() == Path(captures_dir).resolve():
         raise ValueError(f"{out}: the output folder must not be the captures folder or one of its captures")
     out.mkdir(parents=True, exist_ok=True)
-    want = {k: v for k, v in asdict(config).items() if k in ("resolution", "size_mm", "network", "device",
-                                                              "holdout_line")}
+    want = {k: v for k, v in asdict(config).items() if k in TASK_SETTINGS}
+    if _config(want) != config:
+        raise ValueError(f"reconstruct-many passes only {', '.join(TASK_SETTINGS)} to its tasks; the other "
+                         "ReconstructConfig settings keep their defaults")
     previous = recorded_results(out / RECORD_FILE)
     jobs = [Job(c.name, {"capture": str(c), "output": str(out / c.name), "config": want}) for c in caps]
     full = _jsonable(asdict(config))
