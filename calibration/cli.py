@@ -15,8 +15,8 @@ CAMERA_GOALS = {"rms_px": 0.3, "focal_pct": 0.1}
 
 def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 2, progress: bool = True) -> tuple:
     """Photograph a ChArUco board with every camera of the TRUE rig (twin), calibrate each camera from those
-    photos alone, and return (the nominal rig with the calibrated cameras, a report scoring them against the
-    truth, and the nominal cameras' own errors for comparison)."""
+    photos alone, and return (the nominal rig with the calibrated cameras, a report per camera scoring it
+    against the truth, with the nominal camera's own errors beside it for comparison)."""
     import numpy as np
 
     from twin.targets.charuco import CharucoTarget, calibration_poses, flat_pose

@@ -78,7 +78,6 @@ def reconstruct_many(captures_dir, output, config: ReconstructConfig = Reconstru
     caps = find_captures(captures_dir)
     if out.resolve() in [c.resolve() for c in caps] or out.resolve() == Path(captures_dir).resolve():
         raise ValueError(f"{out}: the output folder must not be the captures folder or one of its captures")
-    out.mkdir(parents=True, exist_ok=True)
     want = {k: v for k, v in asdict(config).items() if k in TASK_SETTINGS}
     if _config(want) != config:
         raise ValueError(f"reconstruct-many passes only {', '.join(TASK_SETTINGS)} to its tasks; the other "

@@ -62,6 +62,13 @@ def test_capture_many_makes_verified_captures(batch):
     assert "2 done, 0 skipped" in first.stdout
     again = _hemicube(d, "capture-many", "samples.toml", "-o", "caps")
     assert "0 done, 2 skipped" in again.stdout
+    # the same folder named for another capture (resolution 16): not skipped, and capture() refuses it
+    (d / "other.toml").write_text(SAMPLES.replace('name = "satin@5"', 'name = "satin@5"\nresolution = 16'))
+    other = _hemicube(d, "capture-many", "other.toml", "-o", "caps", "--retries", "0", ok=(1,))
+    o = _outcomes(d / "caps" / "batch.json")
+    assert o["ramps_seed2"]["status"] == "skipped" and o["satin5"]["status"] == "failed"
+    assert "holds a different capture (resolution" in o["satin5"]["error"] and "1 failed" in other.stdout
+    _hemicube(d, "capture-many", "samples.toml", "-o", "caps")  # the record as the first batch left it
 
 
 def test_reconstruct_many_reports_the_broken_capture_and_scores_the_rest(batch):
@@ -105,6 +112,12 @@ def test_bad_samples_file_is_one_line(tmp_path):
     r = _hemicube(tmp_path, "capture-many", "s.toml", "-o", "caps", ok=(2,))
     assert r.stderr.strip().count("\n") == 0 and "unknown key(s) ['colour']" in r.stderr
     assert not (tmp_path / "caps").exists()
+
+
+def test_a_batch_that_cannot_start_leaves_nothing(tmp_path):
+    (tmp_path / "s.toml").write_text(SAMPLES)
+    r = _hemicube(tmp_path, "capture-many", "s.toml", "-o", "caps", "--device", "cuda", ok=(2,))
+    assert "GPU tasks asked for, but the Ray cluster has 0 GPUs" in r.stderr and not (tmp_path / "caps").exists()
 
 
 def test_reconstruct_many_needs_captures(tmp_path):

@@ -110,6 +110,7 @@ def write_record(path, header: dict, outcomes: list[Outcome]) -> None:
     from twin.atomic import write_bytes_atomic
 
     doc = {**header, "outcomes": [o.to_json() for o in outcomes]}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(path, (json.dumps(doc, indent=1) + "\n").encode())
 
 
@@ -126,7 +127,8 @@ def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOp
               record=None, header: dict | None = None, logs=None) -> list[Outcome]:
     """Run fn(**job.args) for every job not `done` (module docstring); outcomes in the jobs' order. With
     `record` (a path), the record file is written once the skips are known and again whenever a job ends, so
-    that a killed batch keeps what it finished; "pending" marks a job not ended yet. With `logs` (a folder), each
+    that a killed batch keeps what it finished (first once Ray runs: a batch that cannot start leaves nothing);
+    "pending" marks a job not ended yet. With `logs` (a folder), each
     job's output goes to logs/<name>.log, every attempt appended."""
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
@@ -143,11 +145,10 @@ def run_batch(jobs: list[Job], fn, *, done=None, options: BatchOptions = BatchOp
             todo.append(j)
     ordered = lambda: [outcomes[n] for n in names]  # noqa: E731
     update = (lambda: write_record(record, header or {}, ordered())) if record is not None else (lambda: None)
-    update()
     if todo:
-        if logs is not None:
-            Path(logs).mkdir(parents=True, exist_ok=True)
-        _run_on_ray(todo, fn, outcomes, options, update, logs)
+        _run_on_ray(todo, fn, outcomes, options, update, logs)  # records once Ray has started and can run them
+    else:
+        update()
     return ordered()
 
 
@@ -171,6 +172,9 @@ def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, upda
                              "GPUs; use --device cpu or a cluster with GPUs")
         task = ray.remote(num_cpus=options.cpus_per_task, num_gpus=options.gpus_per_task, max_retries=0)(_attempt)
         running = {}
+        update()
+        if logs is not None:
+            Path(logs).mkdir(parents=True, exist_ok=True)
 
         def submit(job: Job) -> None:
             o = outcomes[job.name]

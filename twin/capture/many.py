@@ -18,7 +18,8 @@ SAMPLES.toml: top-level keys are defaults for every sample; each [[sample]] name
     OUT/<folder>/   the capture (twin.capture.session; resumed when a run was killed)
     OUT/logs/<folder>.log  what each job printed (progress, a failure's traceback), every attempt
     OUT/batch.json  (twin.batch) one entry per sample: status, attempts, seconds, photos; rewritten as jobs end
-A capture is finished when its every planned photo is listed and every file verifies; it is then skipped.
+A capture is finished when its folder holds the capture the entry describes (the same manifest header) with
+every planned photo listed and every file verified; it is then skipped.
 """
 from __future__ import annotations
 
@@ -82,42 +83,56 @@ def capture_one(sample: str, rig: str, seed: int, resolution: int, patterns: str
     import twin
     from twin.capture.runner import capture
 
-    learned = None
-    if patterns:
-        from twin.capture.patterns import load_patterns
-
-        learned = load_patterns(patterns)
+    learned = _learned(patterns)
     rig_obj = twin.load_rig(rig)
     if learned is not None:
         learned.check_rig(rig_obj)
     out = capture(rig_obj, sample, output, seed=seed, device=device, resolution=resolution, learned=learned,
                   progress=True)  # to the job's log
     session = CaptureSession.open(out)
-    if not session.complete():
-        raise CaptureError(f"{out}: not complete after the capture ({len(session.verify())} files fail their checksum)")
-    return {"photos": len(session.photos), "rig": session.rig_name, "seed": seed}
+    if not session.complete(verify=False):  # the capture checksummed every file as it wrote it
+        raise CaptureError(f"{out}: photos of the plan are missing after the capture")
+    return _result(session)
+
+
+def _result(session: CaptureSession) -> dict:
+    return {"photos": len(session.photos), "rig": session.rig_name, "seed": session.header["seed"]}
+
+
+def _learned(patterns: str | None):
+    if not patterns:
+        return None
+    from twin.capture.patterns import load_patterns
+
+    return load_patterns(patterns)
 
 
 def capture_many(samples_toml, output, device: str = "cpu", options: BatchOptions = BatchOptions()) -> list:
     """Run the batch (module docstring); returns twin.batch.Outcome per sample and writes OUT/batch.json."""
     samples = read_samples(samples_toml)
     out = Path(output)
-    out.mkdir(parents=True, exist_ok=True)
     jobs = [Job(s["folder"], {"sample": s["name"], "rig": s["rig"], "seed": s["seed"], "resolution": s["resolution"],
                               "patterns": s["patterns"], "output": str(out / s["folder"]), "device": device})
             for s in samples]
 
     def finished(job: Job):
+        """The job's result when its folder holds this very capture (the header capture() would write: rig,
+        sample, seed, resolution, patterns, plan), finished and verified; else None (the task resumes it, or
+        refuses a folder that holds another capture)."""
+        import twin
+        from twin.capture.runner import capture_header
+
+        a = job.args
         try:
-            session = CaptureSession.open(job.args["output"])
+            session = CaptureSession.open(a["output"])
         except CaptureError:
             return None
-        h = session.header
-        same = (h.get("sample") == job.args["sample"] and h.get("seed") == job.args["seed"]
-                and h.get("resolution") == job.args["resolution"])
-        if not (same and session.complete()):
-            return None  # the task resumes it, or refuses a folder that holds another capture
-        return {"photos": len(session.photos), "rig": session.rig_name, "seed": job.args["seed"]}
+        try:
+            header = capture_header(twin.load_rig(a["rig"]), a["sample"], seed=a["seed"], resolution=a["resolution"],
+                                    learned=_learned(a["patterns"]))[0]
+        except (ValueError, OSError):  # a bad rig or pattern file: the task runs and reports it
+            return None
+        return _result(session) if session.holds(header) and session.complete() else None
 
     return run_batch(jobs, capture_one, done=finished, options=options, record=out / RECORD_FILE,
                      header={"samples": str(samples_toml), "device": device}, logs=out / LOG_FOLDER)

@@ -100,6 +100,22 @@ def photos(rig, sims: dict, patterns, todo, device: str, stage=None):
         yield photo, raws, hdr, record
 
 
+def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", resolution: int = 128, learned=None,
+                   cameras: str | None = None) -> tuple[dict, object, list]:
+    """(the manifest header, the pattern set, the plan) of the capture these arguments describe: what a capture
+    folder must hold to be resumed (or, finished, to be reused) for them."""
+    patterns = build_patterns(rig, learned)
+    plan = paper_plan(rig, patterns)
+    header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "rig": rig.name, "rig_digest": rig.digest(),
+              "backend": backend, "seed": int(seed), "sample": str(sample), "resolution": int(resolution),
+              "patterns_sha256": hashlib.sha256(patterns.to_bytes()).hexdigest(),
+              "plan": [asdict(p) for p in plan], "bracket": BRACKET, "bracket_ratio": BRACKET_RATIO,
+              "units": {"hdr": "W m^-2 sr^-1 (linear, camera RGB)", "length": "mm"}}
+    if backend != "sim":  # a resume must not mix emulated and real cameras
+        header["cameras"] = cameras
+    return header, patterns, plan
+
+
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
             resolution: int = 128, learned=None, progress: bool = True, devices: dict | None = None) -> Path:
     """Run the plan into `output` (resuming a killed run there). Returns the folder. `devices` are the
@@ -113,15 +129,8 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     devices = {k: v for k, v in (devices or {}).items() if v is not None}
     # the twin renders (and so knows the ground truth) unless real cameras take the photos
     maps = load_sample(sample, resolution=resolution) if devices.get("cameras") != "basler" else None
-    patterns = build_patterns(rig, learned)
-    plan = paper_plan(rig, patterns)
-    header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "rig": rig.name, "rig_digest": rig.digest(),
-              "backend": backend, "seed": int(seed), "sample": str(sample), "resolution": int(resolution),
-              "patterns_sha256": hashlib.sha256(patterns.to_bytes()).hexdigest(),
-              "plan": [asdict(p) for p in plan], "bracket": BRACKET, "bracket_ratio": BRACKET_RATIO,
-              "units": {"hdr": "W m^-2 sr^-1 (linear, camera RGB)", "length": "mm"}}
-    if backend != "sim":  # a resume must not mix emulated and real cameras
-        header["cameras"] = devices.get("cameras")
+    header, patterns, plan = capture_header(rig, sample, seed=seed, backend=backend, resolution=resolution,
+                                            learned=learned, cameras=devices.get("cameras"))
     with open_backends(rig, maps, backend, seed, device, devices) as sims, \
             CaptureSession.create(output, header) as session:
         session.write_setup(patterns, rig, maps)

@@ -59,6 +59,11 @@ def _pixel_texel_file(camera_index: int) -> str:
     return f"ground_truth/pixel_texel_cam{camera_index:02d}.npy"
 
 
+def _differing(old: dict, header: dict) -> list[str]:
+    """The keys of `header` whose value a manifest `old` does not share."""
+    return [k for k in header if old.get(k) != header[k]]
+
+
 def _read_manifest(directory: Path) -> dict:
     path = directory / MANIFEST
     if not path.is_file():
@@ -140,11 +145,15 @@ class CaptureSession:
         """Listed files whose checksum does not match (empty when all verify)."""
         return [rel for rel in self.files if not self.verified(rel)]
 
-    def complete(self) -> bool:
-        """Every photo of the plan is listed and every listed file verifies: a finished capture."""
+    def complete(self, verify: bool = True) -> bool:
+        """Every photo of the plan is listed and (verify) every listed file verifies: a finished capture."""
         plan = self.header.get("plan", [])
-        return bool(plan) and all(photo_stem(p["index"], p["camera_index"]) in self.photos for p in plan) \
-            and not self.verify()
+        listed = bool(plan) and all(photo_stem(p["index"], p["camera_index"]) in self.photos for p in plan)
+        return listed and not (verify and self.verify())
+
+    def holds(self, header: dict) -> bool:
+        """True when this folder's capture is the one `header` describes (twin.capture.runner.capture_header)."""
+        return not _differing(self.header, header)
 
     def photo(self, index: int, camera_index: int) -> np.ndarray:
         """(H, W, 3) float32 HDR photo k of camera c, checked against the manifest and for finite values."""
@@ -206,7 +215,7 @@ class CaptureSession:
         files, photos = {}, {}
         if (d / MANIFEST).exists():
             old = _read_manifest(d)
-            mismatch = [k for k in header if old.get(k) != header[k]]
+            mismatch = _differing(old, header)
             if mismatch:
                 raise CaptureError(f"{d} holds a different capture ({', '.join(mismatch)} differ); "
                                    "choose another folder")

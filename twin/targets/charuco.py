@@ -15,6 +15,7 @@ one, which is also what the calibration fits (the richer simulation the issue as
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,11 +52,15 @@ class CharucoTarget:
         """(N, 3) the inner chessboard corners in the board frame, in OpenCV's corner-id order."""
         return np.asarray(self.board().getChessboardCorners(), np.float64).reshape(-1, 3)
 
+    @functools.lru_cache(maxsize=4)  # one print per board: every photo of a calibration reuses it
     def texture(self) -> np.ndarray:
-        """The print's reflectance image, row r / column c covering board y / x in mm at texture_px_per_mm."""
+        """The print's reflectance image, row r / column c covering board y / x in mm at texture_px_per_mm
+        (read-only: shared between photos)."""
         w, h = (int(round(s * self.texture_px_per_mm)) for s in self.size_mm)
         img = self.board().generateImage((w, h), marginSize=0, borderBits=1)
-        return BLACK + (WHITE - BLACK) * (img.astype(np.float32) / 255.0)
+        tex = BLACK + (WHITE - BLACK) * (img.astype(np.float32) / 255.0)
+        tex.flags.writeable = False
+        return tex
 
     def radiance(self, camera, R, t, supersample: int = 2) -> np.ndarray:
         """(H, W) float32 reflectance seen by each pixel (box filter over supersample² rays)."""
