@@ -37,6 +37,15 @@ Two steps, as in the reference:
      than the homography's (`AlignConfig.gate`, `gain`), i.e. where the sample departs from the plane;
      elsewhere the map is the homography.
    The dense step looks inside the holder frame's window only (`_roi`).
+3. **Pyramid** (ours, `AlignConfig.pyramid_width`): photos wider than 700 px (the paper rig's 2664 px) are
+   binned f x f (f = 4 there) and steps 1-2 run on the binned pair with the reference constants scaled to
+   it; then the dense step runs once more at full width, where every pixel searches the whole window of
+   +-f px around the refitted homography (a cost volume, `patchmatch.exhaustive`) and the refits go on.
+   A part of the sample that the binned level matched farther than f px off the plane keeps that offset.
+   Why: at full width the reference's PatchMatch evaluates ~10^3 candidate 7 x 7 x 128 patch costs per
+   pixel and pass, each a scattered read; one alignment had not ended after 290 s on an H100. Through the
+   pyramid it takes ~20 s on an H200 (docs/performance.md), ~2 min on two CPU cores. The mini rig's
+   222-px photos take one level, as before.
 
 Coordinates: pixel (x = column, y = row), centres at integers (twin.rig.units). The map is returned in RAW
 (distorted) pixel coordinates of both cameras, as the photos are stored.
@@ -60,7 +69,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from .patchmatch import PatchCost, dense_sift, patchmatch, subpixel
+from .patchmatch import PatchCost, dense_sift, exhaustive, patchmatch, subpixel
 
 __all__ = ["AlignConfig", "Alignment", "AlignmentError", "align_views", "warp_to_primary", "alignment_error",
            "tone_map", "REFERENCE_WIDTH"]
@@ -121,6 +130,15 @@ class AlignConfig:
     # 0.02, ramps 0.13 -> 0.12: 8 free parameters follow biases of the dense matches on weakly or anisotropically
     # textured samples (its error grows linearly across the sample: a spurious tilt), one cannot.
     refit: str = "height"
+    # ours, a two-level pyramid for photos wider than this (the paper rig's 2664 px): PatchMatch and the refits
+    # run as above on both photos binned by the smallest integer f that makes them at most this wide (2664 ->
+    # 666 px, f = 4), and then once more at the full width, where every pixel searches its whole window of
+    # +-f px around the refitted homography (`patchmatch.exhaustive`) and the refits go on; a part of the
+    # sample that the binned level matched farther off the plane than that keeps the binned offset. At full
+    # width the reference-scaled PatchMatch needs ~10^3 candidate evaluations of 7 x 7 x 128 values per pixel
+    # and pass, each a scattered read (over 290 s per alignment on an H100, docs/performance.md). None: one
+    # level at any width
+    pyramid_width: int | None = 700
     seed: int = 0  # PatchMatch's random initialisation and search (torch.Generator)
     device: str = "cpu"
 
@@ -134,9 +152,9 @@ class AlignConfig:
         if self.patch < 1 or self.patch % 2 == 0:
             raise ValueError(f"AlignConfig.patch must be a positive odd number of pixels, got {self.patch}")
         if (self.iterations < 0 or self.refine_passes < 0 or self.min_inliers < 4 or self.min_markers < 1
-                or self.marker_upsample < 1):
-            raise ValueError("AlignConfig: iterations >= 0, refine_passes >= 0, min_inliers >= 4, min_markers >= 1 "
-                             "and marker_upsample >= 1 are required")
+                or self.marker_upsample < 1 or (self.pyramid_width is not None and self.pyramid_width < 64)):
+            raise ValueError("AlignConfig: iterations >= 0, refine_passes >= 0, min_inliers >= 4, min_markers >= 1, "
+                             "marker_upsample >= 1 and pyramid_width >= 64 (or None) are required")
         for name in ("ransac_px", "cell_size"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
@@ -469,21 +487,32 @@ def align_views(primary: np.ndarray, secondary: np.ndarray, rig, config: AlignCo
     im1 = _check_image("secondary", secondary, cam1)
     scale = cam0.width / REFERENCE_WIDTH
     t0, t1 = tone_map(im0), tone_map(im1)
-
-    H, coarse_info = _coarse(t0.mean(2), t1.mean(2), cam0, cam1, rig, cfg, scale)
+    f = 1 if cfg.pyramid_width is None else -(-cam0.width // cfg.pyramid_width)
+    # the pyramid's binned level (AlignConfig.pyramid_width): the coarse step runs there too, since it only has
+    # to land within the dense search's reach (SIFT on a 2664 x 2304 photo finds ~10^5 keypoints to match)
+    level = _binned_level(im0, im1, cam0, cam1, f) if f > 1 else SimpleNamespace(t0=t0, t1=t1, cam0=cam0, cam1=cam1)
+    S = _binning(f)
+    H, coarse_info = _coarse(level.t0.mean(2), level.t1.mean(2), level.cam0, level.cam1, rig, cfg, scale / f)
     if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
         raise AlignmentError(f"{cfg.coarse}: degenerate homography {H.tolist()}")
+    H = np.linalg.inv(S) @ H @ S
+    H = H / H[2, 2]
     method = coarse_info.pop("coarse_method", cfg.coarse)
-    info = {"method": method, **coarse_info, "scale": scale, "coarse_homography": H.tolist(),
+    info = {"method": method, **coarse_info, "scale": scale, "pyramid_factor": f, "coarse_homography": H.tolist(),
             "coarse_s": time.perf_counter() - t_start}
-    H0, W0 = cam0.height, cam0.width
-    yy, xx = np.mgrid[0:H0, 0:W0]
-    grid = np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64)
+    u0 = _undistorted_grid(cam0)
+    grid = np.stack(np.meshgrid(np.arange(cam0.width), np.arange(cam0.height)), axis=2).astype(np.float64)
+    u = u0
     if cfg.dense:
-        H, corrections, dense_info = _dense(t0, t1, cam0, cam1, H, rig, cfg, scale)
+        if f > 1:
+            H, corrections, dense_info = _dense_pyramid(level, t0, t1, cam0, cam1, H, u0, rig, cfg, scale, f)
+        else:
+            H, corrections, dense_info = _dense(t0, t1, cam0, cam1, H, u0, rig, cfg, scale, None)
         info.update(dense_info)
-        grid = grid + corrections.reshape(-1, 2)
-    result = _coarse_map(cam0, cam1, H, grid).reshape(H0, W0, 2)
+        moved = (corrections != 0).any(axis=2)
+        u = u0.copy()
+        u[moved] = _undistort_px(cam0, grid[moved] + corrections[moved])
+    result = _distort_px(cam1, _apply_h(H, u.reshape(-1, 2))).reshape(cam0.height, cam0.width, 2)
     out = ~((result[..., 0] >= 0) & (result[..., 0] <= cam1.width - 1) & (result[..., 1] >= 0)
             & (result[..., 1] <= cam1.height - 1))
     result[out] = np.nan
@@ -491,16 +520,67 @@ def align_views(primary: np.ndarray, secondary: np.ndarray, rig, config: AlignCo
     return Alignment(result.astype(np.float32), H, info)
 
 
-def _dense(t0, t1, cam0, cam1, H, rig, cfg, scale):
-    """The dense step. Returns the homography the map falls back on (refitted, cfg.refine_passes), the per-pixel
-    corrections (H0, W0, 2) in primary px (the map is H applied at pixel + correction; 0 where the gate keeps
-    the homography), and info."""
+def _undistorted_grid(cam) -> np.ndarray:
+    """(H, W, 2) undistorted coordinates of every pixel (computed once per level: the iterative undistortion of
+    a 2664 x 2304 grid takes seconds)."""
+    yy, xx = np.mgrid[0:cam.height, 0:cam.width]
+    uv = np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64)
+    return _undistort_px(cam, uv).reshape(cam.height, cam.width, 2)
+
+
+def _binning(f: int) -> np.ndarray:
+    """Pixel coordinates -> those of f x f binned pixels (Camera.resized: c' = (c + 0.5) / f - 0.5), raw or
+    undistorted alike (the binned camera's K is this matrix times K)."""
+    return np.array([[1 / f, 0, (1 / f - 1) / 2], [0, 1 / f, (1 / f - 1) / 2], [0, 0, 1]])
+
+
+def _binned_level(im0, im1, cam0, cam1, f: int):
+    """Both photos binned f x f (the mean of each block: what a camera with f-times larger pixels records; the
+    last H % f rows and W % f columns dropped), tone-mapped, with their cameras."""
+    def binned(img):
+        H, W, C = img.shape
+        return tone_map(img[:H // f * f, :W // f * f].reshape(H // f, f, W // f, f, C).mean(axis=(1, 3)))
+
+    def camera(cam):
+        return replace(cam, width=cam.width // f * f, height=cam.height // f * f).resized(1 / f)
+
+    return SimpleNamespace(t0=binned(im0), t1=binned(im1), cam0=camera(cam0), cam1=camera(cam1))
+
+
+def _dense_pyramid(level, t0, t1, cam0, cam1, H, u0, rig, cfg, scale, f):
+    """The dense step on the pyramid's two levels (AlignConfig.pyramid_width): PatchMatch and refits on the
+    binned level, then the whole +-f px window around its homography at full width."""
+    t = time.perf_counter()
+    S = _binning(f)
+    Hb, binned, binned_info = _dense(level.t0, level.t1, level.cam0, level.cam1, S @ H @ np.linalg.inv(S),
+                                     _undistorted_grid(level.cam0), rig, cfg, scale / f, None)
+    H = np.linalg.inv(S) @ Hb @ S
+    H, corrections, info = _dense(t0, t1, cam0, cam1, H / H[2, 2], u0, rig, cfg, scale, f)
+    # the binned level's offsets in full-width px, at the nearest binned pixel; those beyond the full-width
+    # window (|o| > f) are parts of the sample off the plane that only the binned level could follow
+    yy = np.clip(np.rint((np.arange(cam0.height) + 0.5) / f - 0.5).astype(int), 0, binned.shape[0] - 1)
+    xx = np.clip(np.rint((np.arange(cam0.width) + 0.5) / f - 0.5).astype(int), 0, binned.shape[1] - 1)
+    up = f * binned[yy[:, None], xx[None, :]]
+    beyond = (np.abs(up) > f).any(axis=2)
+    corrections[beyond] = up[beyond]
+    info["dense"]["binned"] = {**binned_info["dense"], "seconds": binned_info["dense_s"],
+                               "beyond_window_fraction": float(beyond.mean())}
+    info["dense_s"] = time.perf_counter() - t
+    return H, corrections, info
+
+
+def _dense(t0, t1, cam0, cam1, H, u0, rig, cfg, scale, window):
+    """The dense step on one level: PatchMatch (window None) or the whole window of +-window px searched
+    (`exhaustive`), the refits (cfg.refine_passes), the gate. u0: the level's undistorted primary pixel grid.
+    Returns the homography the map falls back on, the per-pixel corrections (H0, W0, 2) in primary px (the map
+    is H applied at pixel + correction; 0 where the gate keeps the homography), and info."""
     t = time.perf_counter()
     p = {"cell": cfg.cell_size if cfg.cell_size is not None else 20.0 * scale,
-         # one more than max_offset: an offset at the limit still has the 3 x 3 neighbours of the sub-pixel fit
-         "R": max(1, int(round(cfg.max_offset * scale))) + 1,
+         # one more than the largest offset: an offset at the limit still has the 3 x 3 neighbours of the
+         # sub-pixel fit
+         "R": (max(1, int(round(cfg.max_offset * scale))) if window is None else window) + 1,
          "jumps": _scaled(cfg.jump_radii, scale), "searches": _scaled(cfg.search_radii, scale),
-         "init": max(1, int(round(cfg.init_noise * scale)))}
+         "init": max(1, int(round(cfg.init_noise * scale))), "exhaustive": window is not None}
     # how far from a pixel its cost looks: offset window, patch, descriptor cells (2 cells + the tent) and Sobel
     pad = p["R"] + cfg.patch // 2 + int(np.ceil(3 * p["cell"])) + 1
     x0, y0, x1, y1 = _roi(cam0, rig, pad)
@@ -510,13 +590,13 @@ def _dense(t0, t1, cam0, cam1, H, rig, cfg, scale):
     roi[y0 - by0:y1 - by0, x0 - bx0:x1 - bx0] = True
     gen = torch.Generator().manual_seed(int(cfg.seed))
     passes = []
-    field = _match(t0, t1, cam0, cam1, H, box, cfg, p, gen)
+    field = _match(t0, t1, cam1, H, u0, box, cfg, p, gen)
     for _ in range(cfg.refine_passes):
         H, refit = _refit(H, field, roi, box, cam0, cam1, cfg, rig)
         passes.append(refit)
         if not refit["applied"]:
             break
-        field = _match(t0, t1, cam0, cam1, H, box, cfg, p, gen)
+        field = _match(t0, t1, cam1, H, u0, box, cfg, p, gen)
         if refit["median_shift_px"] < 0.1:  # converged to within the matches' own noise
             break
     # the gate (AlignConfig.gate, gain): a distinct minimum, clearly better than the homography's offset 0
@@ -524,8 +604,10 @@ def _dense(t0, t1, cam0, cam1, H, rig, cfg, scale):
     accept = roi & field["known"] & (field["lam_min"] > cfg.gate * cmin) & (field["c_zero"] - cmin > cfg.gain * cmin)
     corrections = np.zeros((cam0.height, cam0.width, 2))
     corrections[by0:by1, bx0:bx1][accept] = field["flow"][accept]
-    info = {"dense": {"cell_px": p["cell"], "max_offset_px": p["R"] - 1, "jumps": list(p["jumps"]),
-                      "search_radii": list(p["searches"]), "init_noise_px": p["init"], "roi_xyxy": [x0, y0, x1, y1],
+    search = {"search": "exhaustive"} if p["exhaustive"] else {
+        "search": "patchmatch", "jumps": list(p["jumps"]), "search_radii": list(p["searches"]),
+        "init_noise_px": p["init"]}
+    info = {"dense": {"cell_px": p["cell"], "max_offset_px": p["R"] - 1, **search, "roi_xyxy": [x0, y0, x1, y1],
                       "cost": field["cost"], "refit": passes, "accepted_fraction": float(accept.sum() / roi.sum()),
                       "median_accepted_offset_px": float(np.median(np.linalg.norm(field["flow"][accept], axis=1)))
                       if accept.any() else 0.0},
@@ -533,14 +615,13 @@ def _dense(t0, t1, cam0, cam1, H, rig, cfg, scale):
     return H, corrections, info
 
 
-def _match(t0, t1, cam0, cam1, H, box, cfg, p, gen) -> dict:
-    """Dense SIFT + PatchMatch inside `box` of the primary photo against the secondary photo warped by H (its
+def _match(t0, t1, cam1, H, u0, box, cfg, p, gen) -> dict:
+    """Dense SIFT + PatchMatch (or the exhaustive search) inside `box` of the primary photo against the secondary photo warped by H (its
     offset 0), with the quadratic fit of the cost around the best offset. Arrays over the box: flow (h, w, 2)
     the sub-pixel offset in primary px, hess (h, w, 2, 2) the fitted cost Hessian, lam_min (smallest
     eigenvalue, NaN at the offset window's edge), cmin (fitted minimum cost), known (target had pixels)."""
     bx0, by0, bx1, by1 = box
-    yy, xx = np.mgrid[by0:by1, bx0:bx1]
-    m = _coarse_map(cam0, cam1, H, np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64))
+    m = _distort_px(cam1, _apply_h(H, u0[by0:by1, bx0:bx1].reshape(-1, 2)))
     warped = bilinear(t1, m[:, 0], m[:, 1]).reshape(by1 - by0, bx1 - bx0, -1)
     known = np.isfinite(warped).all(axis=2)
     warped = np.where(known[..., None], warped, 0.0)
@@ -549,15 +630,25 @@ def _match(t0, t1, cam0, cam1, H, box, cfg, p, gen) -> dict:
     tgt = torch.from_numpy(np.ascontiguousarray(warped.transpose(2, 0, 1))).float().to(dev)
     d_src = dense_sift(src, p["cell"], cfg.orientation_sharpness, cfg.norm_floor)
     d_tgt = dense_sift(tgt, p["cell"], cfg.orientation_sharpness, cfg.norm_floor)
-    cost = PatchCost(d_src, d_tgt, cfg.patch, p["R"], cfg.volume_budget_mb * 2 ** 20)
-    off, _ = patchmatch(cost, init_noise=p["init"], jumps=p["jumps"], searches=p["searches"],
-                        iterations=cfg.iterations, generator=gen)
-    step, cmin, hess, lam_min = subpixel(cost, off)
-    return {"flow": (off.to(step.dtype) + step).permute(1, 2, 0).cpu().numpy().astype(np.float64),
-            "hess": hess.cpu().numpy().astype(np.float64), "cmin": cmin.cpu().numpy().astype(np.float64),
-            "lam_min": lam_min.cpu().numpy().astype(np.float64), "known": known,
-            "c_zero": cost(cost.encode(torch.zeros_like(off))[None])[0].cpu().numpy().astype(np.float64),
-            "cost": "volume" if cost.volume is not None else "direct"}
+    budget = cfg.volume_budget_mb * 2 ** 20
+    if p["exhaustive"]:
+        r = exhaustive(d_src, d_tgt, cfg.patch, p["R"], budget)
+        kind = "volume in bands"
+    else:
+        cost = PatchCost(d_src, d_tgt, cfg.patch, p["R"], budget)
+        off, _ = patchmatch(cost, init_noise=p["init"], jumps=p["jumps"], searches=p["searches"],
+                            iterations=cfg.iterations, generator=gen)
+        step, cmin, hess, lam_min = subpixel(cost, off)
+        r = {"off": off, "step": step, "cmin": cmin, "hess": hess, "lam_min": lam_min,
+             "c_zero": cost(cost.encode(torch.zeros_like(off))[None])[0]}
+        kind = "volume" if cost.volume is not None else "direct"
+
+    def host(x):
+        return x.cpu().numpy().astype(np.float64)
+
+    return {"flow": host((r["off"].to(r["step"].dtype) + r["step"]).permute(1, 2, 0)), "hess": host(r["hess"]),
+            "cmin": host(r["cmin"]), "lam_min": host(r["lam_min"]), "known": known, "c_zero": host(r["c_zero"]),
+            "cost": kind}
 
 
 def warp_to_primary(image_secondary: np.ndarray, alignment: Alignment) -> np.ndarray:

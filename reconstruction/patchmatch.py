@@ -5,6 +5,7 @@ pixel (Liu et al.) and PatchMatch (Barnes et al.) over them, in torch, vectorise
     cost = PatchCost(d0, d1, patch, max_offset, ...)            # SSD of 7 x 7 descriptor patches per offset
     off = patchmatch(cost, init_noise=..., jumps=..., searches=..., iterations=10, generator=g)
     sub, info = subpixel(cost, off)                             # quadratic fit around the integer optimum
+    best = exhaustive(d0, d1, patch, radius, budget)            # a small window searched whole, in row bands
 
 reconstruction.alignment uses these relative to its homography (offset 0 = the coarse mapping).
 """
@@ -14,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["dense_sift", "PatchCost", "patchmatch", "subpixel"]
+__all__ = ["dense_sift", "PatchCost", "patchmatch", "subpixel", "exhaustive"]
 
 
 # --- dense SIFT (reference §6.2; SIFT Flow, Liu et al.) ---------------------------------------------------
@@ -206,3 +207,31 @@ def subpixel(cost: PatchCost, off: torch.Tensor):
     lam_min = torch.where((off.abs() >= cost.R).any(0), torch.full_like(lam_min, float("nan")), lam_min)
     hess = torch.stack([torch.stack([hxx, hxy], -1), torch.stack([hxy, hyy], -1)], -2)
     return step, cmin, hess, lam_min
+
+
+def exhaustive(src: torch.Tensor, tgt: torch.Tensor, patch: int, radius: int, budget_bytes: float) -> dict:
+    """Every pixel's best integer offset over the whole (2R + 1)^2 window (not PatchMatch's sample of it: for
+    a window this small the cost volume costs less than PatchMatch's candidates), its `subpixel` fit and the
+    cost of offset 0. The volume is computed in bands of rows that fit `budget_bytes`, each with a halo of
+    R + patch // 2 rows, so that every kept row sees the same descriptors as in one volume over the whole
+    image: the same numbers as PatchCost on the whole image (tests/test_alignment.py). Ties go to the lowest
+    offset index. Returns a dict of (H, W) tensors: off (2, H, W), step (2, H, W), cmin, hess (H, W, 2, 2),
+    lam_min, c_zero."""
+    D, H, W = src.shape
+    k = 2 * radius + 1
+    halo = radius + patch // 2
+    fit = budget_bytes / (2 * (k * k + 1) * W * src.element_size())  # rows whose volume (and its scratch) fit
+    rows = H if fit >= H + 2 * halo else max(1, int(fit) - 2 * halo)
+    parts = []
+    for y0 in range(0, H, rows):
+        y1 = min(y0 + rows, H)
+        b0, b1 = max(y0 - halo, 0), min(y1 + halo, H)
+        cost = PatchCost(src[:, b0:b1], tgt[:, b0:b1], patch, radius, float("inf"))
+        off = cost.decode(cost.volume[:-1].argmin(dim=0).reshape(cost.shape))
+        step, cmin, hess, lam_min = subpixel(cost, off)
+        c_zero = cost(cost.encode(torch.zeros_like(off))[None])[0]
+        keep = slice(y0 - b0, y1 - b0)
+        parts.append({"off": off[:, keep], "step": step[:, keep], "cmin": cmin[keep], "hess": hess[keep],
+                      "lam_min": lam_min[keep], "c_zero": c_zero[keep]})
+    dims = {"off": 1, "step": 1}
+    return {name: torch.cat([p[name] for p in parts], dim=dims.get(name, 0)) for name in parts[0]}
