@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -157,3 +158,31 @@ def test_run_batch_retries_raised_errors_and_dead_workers(tmp_path):
     none_left = run_batch(jobs[:1], flaky, options=BatchOptions(num_cpus=1, retries=0, progress=False),
                           done=lambda job: {"from": "before"})
     assert none_left[0].status == "skipped" and none_left[0].result == {"from": "before"}
+
+
+def sleeper(seconds: float) -> dict:
+    """A job that takes `seconds` (a hung device read, a stuck kernel)."""
+    time.sleep(seconds)
+    return {"slept": seconds}
+
+
+def test_run_batch_kills_an_attempt_that_runs_over_its_timeout(tmp_path):
+    """--timeout: the hung job's worker is killed after each attempt's timeout and the job is reported failed
+    after 1 + retries attempts; the job beside it, queued behind it on a one-slot Ray, still runs."""
+    from ray import cloudpickle
+
+    from twin.batch import BatchOptions, Job, run_batch
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    jobs = [Job("hangs", {"seconds": 600.0}), Job("quick", {"seconds": 0.1})]
+    t0 = time.monotonic()
+    out = {o.name: o for o in run_batch(jobs, sleeper, options=BatchOptions(num_cpus=1, retries=1, timeout=4,
+                                                                              progress=False),
+                                        record=tmp_path / "batch.json")}
+    assert time.monotonic() - t0 < 120  # not the 600 s the hung job would take
+    assert out["hangs"].status == "failed" and out["hangs"].attempts == 2
+    assert out["hangs"].error.startswith("TimeoutError: the attempt ran over the batch's timeout of 4 s")
+    assert out["quick"].status == "done" and out["quick"].result == {"slept": 0.1}
+    with pytest.raises(ValueError, match="timeout must be > 0 seconds"):
+        BatchOptions(timeout=0)
+

@@ -7,8 +7,11 @@ GPUs for GPU tasks) or on a running cluster (`address`, e.g. "ray://head:10001" 
 this module adds what a database build needs around it:
 * idempotent: `done(job)` is asked in the driver before anything starts; a job whose output is finished and
   verifies (the caller checks its checksums) is skipped, with the result it reports;
-* bounded retries: a task that raises, or whose worker dies, is submitted again, at most `retries` more
-  times, then reported failed with its last error (one line); the batch goes on;
+* bounded retries: a task that raises, whose worker dies, or that runs over `timeout` seconds (its worker is
+  then killed: a hung camera read or a stuck kernel must not hold a GPU forever) is submitted again, at most
+  `retries` more times, then reported failed with its last error (one line); the batch goes on. The driver
+  submits no more tasks than the cluster can run at once (its CPUs, or GPUs, over a task's share, counted
+  when the batch starts), so that an attempt's clock starts when it can run, not while it queues;
 * progress on stderr as tasks end, and one outcome per job at the end (status done / skipped / failed,
   attempts, seconds, the task's result) for the caller's table.
 The task function must be importable by the workers (a module-level function of this project); it takes
@@ -65,6 +68,7 @@ class BatchOptions:
     gpus_per_task: float = 0.0   # > 0: GPU tasks (Ray sets CUDA_VISIBLE_DEVICES; the task uses "cuda")
     num_cpus: int | None = None  # local Ray only: cores it may use (default: all), i.e. tasks at a time
     retries: int = 2             # submissions after the first, per job
+    timeout: float | None = None  # seconds an attempt may run (from its submission, worker start included)
     progress: bool = True
 
     def __post_init__(self):
@@ -74,6 +78,8 @@ class BatchOptions:
             raise ValueError("cpus_per_task must be > 0 and gpus_per_task >= 0")
         if self.num_cpus is not None and self.num_cpus < 1:
             raise ValueError(f"num_cpus must be >= 1, got {self.num_cpus}")
+        if self.timeout is not None and not self.timeout > 0:
+            raise ValueError(f"timeout must be > 0 seconds, got {self.timeout}")
 
 
 def _attempt(fn, args: dict, cpus: float, log: str | None, attempt: int) -> dict:
@@ -171,7 +177,8 @@ def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, upda
             raise ValueError(f"GPU tasks asked for, but the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} "
                              "GPUs; use --device cpu or a cluster with GPUs")
         task = ray.remote(num_cpus=options.cpus_per_task, num_gpus=options.gpus_per_task, max_retries=0)(_attempt)
-        running = {}
+        slots = _slots(ray.cluster_resources(), options)
+        running, queue = {}, list(todo)  # running: ref -> (job, deadline)
         update()
         if logs is not None:
             Path(logs).mkdir(parents=True, exist_ok=True)
@@ -180,28 +187,37 @@ def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, upda
             o = outcomes[job.name]
             o.attempts += 1
             log = str(Path(logs).resolve() / f"{job.name}.log") if logs is not None else None
-            running[task.remote(fn, job.args, options.cpus_per_task, log, o.attempts)] = job
+            deadline = time.monotonic() + options.timeout if options.timeout is not None else float("inf")
+            running[task.remote(fn, job.args, options.cpus_per_task, log, o.attempts)] = (job, deadline)
 
-        for j in todo:
-            submit(j)
         ended, total = 0, len(todo)
         t0 = time.perf_counter()
-        while running:
-            ready, _ = ray.wait(list(running), num_returns=1)
-            ref = ready[0]
-            job = running.pop(ref)
+        while running or queue:
+            while queue and len(running) < slots:
+                submit(queue.pop(0))
+            wait = min(d for _, d in running.values()) - time.monotonic()
+            ready, _ = ray.wait(list(running), num_returns=1, timeout=None if wait == float("inf") else max(wait, 0))
+            if ready:
+                ref = ready[0]
+                job = running.pop(ref)[0]
+                try:
+                    r = ray.get(ref)
+                except ray.exceptions.RayError as e:  # the worker died (killed, out of memory): retried alike
+                    r = {"ok": False, "error": f"{type(e).__name__}: {str(e).splitlines()[0]}", "seconds": 0.0}
+            else:  # the first deadline passed: kill that attempt's worker
+                ref = min(running, key=lambda k: running[k][1])
+                job = running.pop(ref)[0]
+                ray.cancel(ref, force=True)
+                r = {"ok": False, "error": f"TimeoutError: the attempt ran over the batch's timeout of "
+                     f"{options.timeout:g} s; its worker was killed", "seconds": float(options.timeout)}
             o = outcomes[job.name]
-            try:
-                r = ray.get(ref)
-            except ray.exceptions.RayError as e:  # the worker died (killed, out of memory): retried alike
-                r = {"ok": False, "error": f"{type(e).__name__}: {str(e).splitlines()[0]}", "seconds": 0.0}
             o.seconds = float(r["seconds"])
             if r["ok"]:
                 o.status, o.result, o.error = "done", r["result"], None
             elif o.attempts <= options.retries:
                 _say(options, f"{job.name}: attempt {o.attempts} failed ({r['error']}); retrying")
                 o.error = r["error"]
-                submit(job)
+                queue.insert(0, job)
                 continue
             else:
                 o.status, o.error = "failed", r["error"]
@@ -212,6 +228,15 @@ def _run_on_ray(todo: list[Job], fn, outcomes: dict, options: BatchOptions, upda
     finally:
         if started_here:
             ray.shutdown()
+
+
+def _slots(resources: dict, options: BatchOptions) -> int:
+    """How many tasks the cluster can run at once: its CPUs over a task's share, and its GPUs over a GPU task's
+    (at least 1)."""
+    n = int(resources.get("CPU", 1) // options.cpus_per_task)
+    if options.gpus_per_task > 0:
+        n = min(n, int(resources.get("GPU", 0) // options.gpus_per_task))
+    return max(1, n)
 
 
 def outcomes_table(outcomes: list[Outcome], columns: list[tuple[str, str]]) -> str:
@@ -239,6 +264,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--gpus-per-task", type=float, help="GPUs per task with --device cuda (default: 1)")
     parser.add_argument("--retries", type=int, default=2, help="submissions after the first for a failing job "
                         "(default: %(default)s)")
+    parser.add_argument("--timeout", type=float, help="seconds a job's attempt may run before its worker is "
+                        "killed and the attempt counts as failed (default: no limit)")
     parser.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
 
 
@@ -247,7 +274,7 @@ def options_from(args, device: str) -> BatchOptions:
     if gpus > 0 and not device.startswith("cuda"):
         raise ValueError("--gpus-per-task needs --device cuda")
     return BatchOptions(address=args.address, gpus_per_task=gpus, num_cpus=args.jobs, retries=args.retries,
-                        progress=not args.no_progress)
+                        timeout=args.timeout, progress=not args.no_progress)
 
 
 def report(outcomes: list[Outcome], table: str, batch_file) -> int:
