@@ -1,5 +1,6 @@
 """`hemicube calibrate` (issue #16): calibration captures in the twin, the procedures of this package on their
-photos, a calibrated rig folder and a report scored against the twin's truth. Built so far: the cameras."""
+photos, a calibrated rig folder and a report scored against the twin's truth. Built so far: the cameras
+(`calibration.cameras`) and the vignetting / flat field (`calibration.vignetting`)."""
 from __future__ import annotations
 
 import json
@@ -9,8 +10,10 @@ from pathlib import Path
 
 from .cameras import (CalibrationError, calibrate_intrinsics, calibrated_camera, detect, locate, score)
 
-# issue #16's goals for the cameras (anchors in ../shared/notes/anchors-devices-calibration-design.md)
+# issue #16's goals (anchors in ../shared/notes/anchors-devices-calibration-design.md): the cameras', and the flat
+# field "within 0.5%", read as: 95% of the pixels within 0.5% of the true falloff (up to one factor)
 CAMERA_GOALS = {"rms_px": 0.3, "focal_pct": 0.1}
+FLAT_FIELD_GOAL_PCT = 0.5
 
 
 def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 2, progress: bool = True) -> tuple:
@@ -45,17 +48,55 @@ def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 
     return replace(nominal, cameras=cams), report
 
 
+def calibrate_vignetting(nominal, truth, extra: dict, frames: int, seed: int, progress: bool = True) -> tuple:
+    """Photograph a flat-field source with every camera of the TRUE rig (its radial falloff and the per-pixel
+    maps `extra`, twin.rig.perturb.perturb_vignetting) at 0 and 180 degrees, `frames` frames each, and
+    calibrate each camera's flat field from those photos alone. Returns (the nominal rig with the fitted radial
+    coefficients, {camera: the per-pixel flat field (H, W)}, {camera: the true falloff (H, W)}, a report per
+    camera scored against the truth)."""
+    from twin.camera.hdr import still_photo
+    from twin.camera.imaging import optics_gain
+    from twin.targets.flatfield import FlatFieldSource
+
+    from .vignetting import calibrate_flat_field, score_flat_field
+
+    source = FlatFieldSource()
+    cams, maps, truths, report = {}, {}, {}, {}
+    for name, cam in truth.cameras.items():
+        shots = [still_photo(source.radiance(cam, angle), cam, seed=seed, frames=frames, first_frame=i * frames,
+                             camera_key=name, flat_field=extra.get(name)) for i, angle in enumerate((0, 180))]
+        ff = calibrate_flat_field([p for p, _ in shots], cam, saturated=[m for _, m in shots])
+        nom = nominal.cameras[name]
+        cams[name] = replace(nom, sensor=replace(nom.sensor, vignetting=ff.radial))
+        maps[name], truths[name] = ff.gain, optics_gain(cam, extra.get(name))
+        s = score_flat_field(ff, truths[name], cam)
+        report[name] = {"photos": ff.photos, "frames_per_photo": frames, "radial": list(ff.radial),
+                        "true_radial": list(cam.sensor.vignetting), "map_about_radial_rms_pct": ff.fit_rms_pct, **s,
+                        "passed": s["flat_field_pct"]["p95"] <= FLAT_FIELD_GOAL_PCT}
+        if progress:
+            print(f"[calibrate] {name}: flat field from 2 x {frames} frames", file=sys.stderr, flush=True)
+    return replace(nominal, cameras=cams), maps, truths, report
+
+
+def _write_maps(folder: Path, maps: dict) -> None:
+    from twin.materials.exr import write_exr
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, gain in maps.items():
+        write_exr(folder / f"{name}.exr", {"Y": gain.astype("float32")})
+
+
 def cmd_calibrate(args) -> int:
     import twin
     from twin.atomic import atomic_folder
     from twin.rig.format import save_rig
     from twin.rig.perturb import perturb_cameras
 
-    if args.what != "cameras":
-        raise ValueError(f"calibrate {args.what!r}: only 'cameras' is built (issue #16)")
+    nominal = twin.load_rig(args.rig)
+    if args.what == "vignetting":
+        return _cmd_vignetting(args, nominal)
     if args.views < 4:
         raise ValueError(f"--views {args.views}: the intrinsics need >= 4 views of the board")
-    nominal = twin.load_rig(args.rig)
     truth = perturb_cameras(nominal, args.perturb) if args.perturb is not None else nominal
     try:
         rig, report = calibrate_cameras(nominal, truth, args.views, args.seed, progress=not args.no_progress)
@@ -76,16 +117,51 @@ def cmd_calibrate(args) -> int:
     return 0 if all(r["passed"] for r in report.values()) else 1
 
 
+def _cmd_vignetting(args, nominal) -> int:
+    from twin.atomic import atomic_folder
+    from twin.rig.format import save_rig
+    from twin.rig.perturb import perturb_vignetting
+
+    if args.frames < 1:
+        raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
+    truth, extra = perturb_vignetting(nominal, args.perturb) if args.perturb is not None else (nominal, {})
+    from .vignetting import FlatFieldError
+
+    try:
+        rig, maps, truths, report = calibrate_vignetting(nominal, truth, extra, args.frames, args.seed,
+                                                         progress=not args.no_progress)
+    except FlatFieldError as e:
+        raise ValueError(f"calibration failed, no rig written: {e}") from None
+    doc = {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed, "frames": args.frames,
+           "goal": {"flat_field_pct_p95": FLAT_FIELD_GOAL_PCT}, "cameras": report}
+    with atomic_folder(Path(args.output), overwrite=True) as tmp:  # nothing is left from a failed run
+        save_rig(rig, tmp / "rig")
+        _write_maps(tmp / "flat_field", maps)
+        save_rig(truth, tmp / "truth")  # the truth beside the result, for scoring
+        _write_maps(tmp / "truth_flat_field", truths)
+        (tmp / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    w = max(len(n) for n in report)
+    for name, r in report.items():
+        f, m = r["flat_field_pct"], r["radial_model_pct"]
+        print(f"{name:<{w}}  flat field: median {f['median']:.3f}%  p95 {f['p95']:.3f}%  max {f['max']:.2f}%   radial "
+              f"model alone: p95 {m['p95']:.3f}%  max {m['max']:.2f}%  {'pass' if r['passed'] else 'FAIL'}")
+    print(f"calibrated rig: {args.output}/rig, flat fields: {args.output}/flat_field (truth: {args.output}/truth and "
+          f"truth_flat_field, report: {args.output}/report.json)")
+    return 0 if all(r["passed"] for r in report.values()) else 1
+
+
 def register(sub) -> None:
     s = sub.add_parser("calibrate", help="calibrate from photographs of targets in the twin; write a calibrated rig "
-                       "folder and a report scored against the truth (built: cameras)")
-    s.add_argument("what", choices=("cameras",), help="what to calibrate")
+                       "folder and a report scored against the truth (built: cameras, vignetting)")
+    s.add_argument("what", choices=("cameras", "vignetting"), help="what to calibrate")
     s.add_argument("--rig", default="paper", help="built-in rig or rig folder: the nominal values (default: %(default)s)")
     s.add_argument("--perturb", type=int, metavar="SEED", help="the true device is the nominal rig with seeded "
                    "errors (twin.rig.perturb); default: the nominal rig itself")
     s.add_argument("--views", type=int, default=8, help="board poses per camera (default: %(default)s)")
     s.add_argument("--seed", type=int, default=0, help="seed of the board poses and the photos' noise (default: "
                    "%(default)s)")
+    s.add_argument("--frames", type=int, default=32, help="vignetting: frames averaged per flat-field photo "
+                   "(default: %(default)s)")
     s.add_argument("-o", "--output", required=True, help="folder for rig/, truth/ and report.json (replaced)")
     s.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
     s.set_defaults(func=cmd_calibrate)

@@ -5,7 +5,17 @@ for scoring (`hemicube calibrate --perturb SEED`).
 Cameras: focal length uniform within +-1% (fx and fy alike: a lens, not the pixels), principal point N(0, 5 px)
 per axis, radial distortion k1, k2, k3 each x N(1, 5%), pose N(0, 1 mm) per axis and a rotation of N(0, 0.2 deg)
 about each axis. The issue names the focal and pose figures; the principal point and distortion spreads are
-this project's choice (a lens re-mounted on its camera). LEDs, profiles, vignetting and colour: not yet.
+this project's choice (a lens re-mounted on its camera).
+
+Vignetting (`perturb_vignetting`): the true light falloff of each camera is richer than the rig's radial
+model (1 + a r^2 + b r^4 + c r^6), so that a flat-field calibration has more to find than the model it fits:
+- lens falloff: a natural cos^4-like radial term, a = -0.25 x U(0.8, 1.2), b = 0.05 x U(0.5, 1.5), c = 0
+  (r is the distance from the principal point over the half-diagonal: ~-20% in the corners);
+- mechanical vignetting: the lens hood or filter ring cuts the corners, a quadratic shoulder from 0.85 to 1.0
+  of the half-diagonal, up to U(5, 15)% deep, centred N(0, 2% of the width) off the principal point;
+- dust on the sensor window: 2-6 soft shadows, Gaussian, sigma U(1, 2.5)% of the width, U(1, 4)% deep.
+The rig keeps the radial part (the rig file's `vignetting`); the other two come back as a per-pixel map.
+LEDs, profiles and colour: not yet.
 """
 from __future__ import annotations
 
@@ -15,7 +25,7 @@ import numpy as np
 
 from .camera import orthonormalise
 
-__all__ = ["perturb_cameras"]
+__all__ = ["perturb_cameras", "perturb_vignetting"]
 
 
 def _rotation(v: np.ndarray) -> np.ndarray:
@@ -44,3 +54,28 @@ def perturb_cameras(rig, seed: int):
         cams[name] = replace(c, K=K, dist=dist, R=R, t=-R @ centre,
                              note=f"perturbed (seed {seed}) from the nominal camera")
     return replace(rig, cameras=cams)
+
+
+def perturb_vignetting(rig, seed: int):
+    """(the rig with every camera's radial vignetting drawn as the module docstring says, {camera name: the
+    (H, W) float64 per-pixel factor of the mechanical vignetting and the dust, which the rig file cannot
+    hold}), from `seed` alone. twin.camera.imaging.optics_gain(camera, map) is the camera's whole falloff."""
+    rng = np.random.default_rng([int(seed), 22])
+    cams, extra = {}, {}
+    for name, c in rig.cameras.items():
+        radial = (-0.25 * rng.uniform(0.8, 1.2), 0.05 * rng.uniform(0.5, 1.5), 0.0)
+        cams[name] = replace(c, sensor=replace(c.sensor, vignetting=radial))
+        W, H = c.width, c.height
+        u = np.arange(W, dtype=np.float64)[None, :] - c.K[0, 2] - rng.normal(0, 0.02 * W)
+        v = np.arange(H, dtype=np.float64)[:, None] - c.K[1, 2] - rng.normal(0, 0.02 * W)
+        r = np.sqrt((u * u + v * v) / (0.25 * (W * W + H * H)))
+        mech = 1 - rng.uniform(0.05, 0.15) * (np.clip((r - 0.85) / 0.15, 0, None) ** 2)
+        dust = np.ones((H, W))
+        yy, xx = np.mgrid[0:H, 0:W]
+        for _ in range(int(rng.integers(2, 7))):
+            cx, cy = rng.uniform(0.1, 0.9) * W, rng.uniform(0.1, 0.9) * H
+            sigma, depth = rng.uniform(0.01, 0.025) * W, rng.uniform(0.01, 0.04)
+            dust *= 1 - depth * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma * sigma))
+        extra[name] = np.clip(mech, 0.5, 1.0) * dust
+    return replace(rig, cameras=cams), extra
+
