@@ -48,12 +48,11 @@ def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 
     return replace(nominal, cameras=cams), report
 
 
-def calibrate_vignetting(nominal, truth, extra: dict, frames: int, seed: int, progress: bool = True) -> tuple:
-    """Photograph a flat-field source with every camera of the TRUE rig (its radial falloff and the per-pixel
-    maps `extra`, twin.rig.perturb.perturb_vignetting) at 0 and 180 degrees, `frames` frames each, and
-    calibrate each camera's flat field from those photos alone. Returns (the nominal rig with the fitted radial
-    coefficients, {camera: the per-pixel flat field (H, W)}, {camera: the true falloff (H, W)}, a report per
-    camera scored against the truth)."""
+def calibrate_vignetting(nominal, truth, frames: int, seed: int, progress: bool = True) -> tuple:
+    """Photograph a flat-field source with every camera of the TRUE rig (its radial falloff and its per-pixel
+    maps, twin.rig.perturb.perturb_vignetting) at 0 and 180 degrees, `frames` frames each, and calibrate each
+    camera's flat field from those photos alone. Returns (the nominal rig with the fitted radial coefficients
+    and the per-pixel maps beyond them, a report per camera scored against the truth)."""
     from twin.camera.hdr import still_photo
     from twin.camera.imaging import optics_gain
     from twin.targets.flatfield import FlatFieldSource
@@ -61,29 +60,22 @@ def calibrate_vignetting(nominal, truth, extra: dict, frames: int, seed: int, pr
     from .vignetting import calibrate_flat_field, score_flat_field
 
     source = FlatFieldSource()
-    cams, maps, truths, report = {}, {}, {}, {}
+    cams, maps, report = {}, {}, {}
     for name, cam in truth.cameras.items():
         shots = [still_photo(source.radiance(cam, angle), cam, seed=seed, frames=frames, first_frame=i * frames,
-                             camera_key=name, flat_field=extra.get(name)) for i, angle in enumerate((0, 180))]
+                             camera_key=name, flat_field=truth.flat_fields.get(name))
+                 for i, angle in enumerate((0, 180))]
         ff = calibrate_flat_field([p for p, _ in shots], cam, saturated=[m for _, m in shots])
         nom = nominal.cameras[name]
         cams[name] = replace(nom, sensor=replace(nom.sensor, vignetting=ff.radial))
-        maps[name], truths[name] = ff.gain, optics_gain(cam, extra.get(name))
-        s = score_flat_field(ff, truths[name], cam)
+        maps[name] = ff.beyond_radial(cam)
+        s = score_flat_field(ff, optics_gain(cam, truth.flat_fields.get(name)), cam)
         report[name] = {"photos": ff.photos, "frames_per_photo": frames, "radial": list(ff.radial),
                         "true_radial": list(cam.sensor.vignetting), "map_about_radial_rms_pct": ff.fit_rms_pct, **s,
                         "passed": s["flat_field_pct"]["p95"] <= FLAT_FIELD_GOAL_PCT}
         if progress:
             print(f"[calibrate] {name}: flat field from 2 x {frames} frames", file=sys.stderr, flush=True)
-    return replace(nominal, cameras=cams), maps, truths, report
-
-
-def _write_maps(folder: Path, maps: dict) -> None:
-    from twin.materials.exr import write_exr
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, gain in maps.items():
-        write_exr(folder / f"{name}.exr", {"Y": gain.astype("float32")})
+    return replace(nominal, cameras=cams, flat_fields=maps), report
 
 
 def cmd_calibrate(args) -> int:
@@ -124,29 +116,26 @@ def _cmd_vignetting(args, nominal) -> int:
 
     if args.frames < 1:
         raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
-    truth, extra = perturb_vignetting(nominal, args.perturb) if args.perturb is not None else (nominal, {})
+    truth = perturb_vignetting(nominal, args.perturb) if args.perturb is not None else nominal
     from .vignetting import FlatFieldError
 
     try:
-        rig, maps, truths, report = calibrate_vignetting(nominal, truth, extra, args.frames, args.seed,
-                                                         progress=not args.no_progress)
+        rig, report = calibrate_vignetting(nominal, truth, args.frames, args.seed, progress=not args.no_progress)
     except FlatFieldError as e:
         raise ValueError(f"calibration failed, no rig written: {e}") from None
     doc = {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed, "frames": args.frames,
            "goal": {"flat_field_pct_p95": FLAT_FIELD_GOAL_PCT}, "cameras": report}
     with atomic_folder(Path(args.output), overwrite=True) as tmp:  # nothing is left from a failed run
         save_rig(rig, tmp / "rig")
-        _write_maps(tmp / "flat_field", maps)
         save_rig(truth, tmp / "truth")  # the truth beside the result, for scoring
-        _write_maps(tmp / "truth_flat_field", truths)
         (tmp / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
     w = max(len(n) for n in report)
     for name, r in report.items():
         f, m = r["flat_field_pct"], r["radial_model_pct"]
         print(f"{name:<{w}}  flat field: median {f['median']:.3f}%  p95 {f['p95']:.3f}%  max {f['max']:.2f}%   radial "
               f"model alone: p95 {m['p95']:.3f}%  max {m['max']:.2f}%  {'pass' if r['passed'] else 'FAIL'}")
-    print(f"calibrated rig: {args.output}/rig, flat fields: {args.output}/flat_field (truth: {args.output}/truth and "
-          f"truth_flat_field, report: {args.output}/report.json)")
+    print(f"calibrated rig (radial coefficients and flat_field.npz): {args.output}/rig (truth: {args.output}/truth, "
+          f"report: {args.output}/report.json)")
     return 0 if all(r["passed"] for r in report.values()) else 1
 
 

@@ -39,6 +39,13 @@ class FlatField:
     photos: int
     fit_rms_pct: float      # RMS of the map about the radial model, % (the falloff a radial model misses)
 
+    def beyond_radial(self, camera) -> np.ndarray:
+        """(H, W) float32: the map over its radial model, what a rig keeps per pixel (`Rig.flat_fields`) beside
+        the camera's radial coefficients (`radial`)."""
+        r2 = radial_basis(camera)
+        a, b, c = self.radial
+        return (self.gain / (1 + r2 * (a + r2 * (b + r2 * c)))).astype(np.float32)
+
 
 def radial_basis(camera) -> np.ndarray:
     """(H, W) r^2 of the rig's radial model: squared distance from the principal point over the squared

@@ -134,11 +134,12 @@ def capture_patterns(session: CaptureSession, rig, names) -> np.ndarray:
     return pats.weights[[index[n] for n in names]].astype(np.float32)
 
 
-def calibration_of(camera) -> tuple[np.ndarray, np.ndarray]:
-    """(flat field (H, W, 1), colour matrix (3, 3)) of a camera: computed once per camera, used per photo."""
+def calibration_of(camera, falloff=None) -> tuple[np.ndarray, np.ndarray]:
+    """(flat field (H, W, 1), colour matrix (3, 3)) of a camera, with the rig's per-pixel `falloff` map for it
+    if any (`Rig.flat_fields`): computed once per camera, used per photo."""
     from twin.camera.correction import colour_matrix, flat_field
 
-    return flat_field(camera)[..., None], colour_matrix(camera)
+    return flat_field(camera, falloff)[..., None], colour_matrix(camera)
 
 
 def corrected(img: np.ndarray, camera, calibration=None) -> np.ndarray:
@@ -230,7 +231,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_
     k0, k1 = (_kernel_width(uv, grid.shape) if anti_alias else 0 for uv in (uv0, uv1))
     scale = np.float32(LUMITEXEL_SCALE)
 
-    calibrations = [calibration_of(c) for c in cams]
+    calibrations = [calibration_of(c, rig.flat_fields.get(c.name)) for c in cams]
 
     def photo(k, c):
         return corrected(session.photo(k, c), cams[c], calibrations[c])

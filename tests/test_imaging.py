@@ -197,6 +197,24 @@ def test_render_is_the_float32_forward_model(mini, ramps):
             assert np.all(np.abs(ours[k] - ref[k]) <= tol), (cam_name, k)
 
 
+def test_render_applies_the_rigs_per_pixel_flat_field(mini, ramps):
+    """A rig's per-pixel falloff map (Rig.flat_fields, from a flat-field calibration or the twin's true device)
+    multiplies the rendered radiance pixel by pixel, in the capture's render and in its reference alike."""
+    from twin.capture.plan import build_patterns
+
+    w = build_patterns(mini).weights[[129]]  # uniform light
+    cam = mini.camera("primary")
+    m = np.linspace(0.6, 1.0, cam.height * cam.width, dtype=np.float32).reshape(cam.height, cam.width)
+    dusty = replace(mini, flat_fields={"primary": m})
+    s = trace_pixels(mini, "primary", ramps, rows=(60, 68))
+    plain, ours, ref = render(mini, "primary", s, w), render(dusty, "primary", s, w), render_reference(dusty, "primary", s, w)
+    lit = plain > 1e-3 * plain.max()
+    want = plain * m[60:68][None, :, :, None]
+    assert lit.sum() > 1000
+    assert np.allclose(ours[lit], want[lit], rtol=1e-6) and np.allclose(ref[lit], want[lit], rtol=2e-5)
+    assert dusty.digest() != mini.digest()
+
+
 def test_pattern_groups_render_only_lit_leds(mini):
     """Patterns are grouped by the LED classes they light; each group evaluates only its lit LEDs."""
     from twin.capture.plan import build_patterns

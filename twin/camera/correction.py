@@ -5,7 +5,8 @@ writes rig folders); applying them is the camera's.
 
 Flat field (`plane_scalar[c]` in the reference): the per-pixel factor that undoes the lens's fall-off, so that
 a pixel's value is proportional to the radiance it sees wherever it lies: 1 / the rig's radial vignetting
-model (`Camera.sensor.vignetting`, twin.camera.sensor.vignetting_factor: 1 + a r^2 + b r^4 + c r^6), the
+model (`Camera.sensor.vignetting`, twin.camera.sensor.vignetting_factor: 1 + a r^2 + b r^4 + c r^6), times
+the rig's per-pixel map for the camera when it has one (`Rig.flat_fields`, from calibration.vignetting), the
 twin's counterpart of the released device's `plane_scalar.bin`.
 
 Colour matrix (`color_mat[c]`): camera RGB -> LED RGB. The camera's channels see the LEDs' R, G and B through a
@@ -23,9 +24,12 @@ from twin.camera.sensor import vignetting_factor
 MIN_FACTOR = 1e-3  # a pixel whose light is attenuated 1000x carries no usable signal
 
 
-def flat_field(camera) -> np.ndarray:
-    """(H, W) float32 multiplier for `camera`'s photos: 1 / vignetting factor."""
+def flat_field(camera, falloff=None) -> np.ndarray:
+    """(H, W) float32 multiplier for `camera`'s photos: 1 / (vignetting factor x the per-pixel `falloff` map,
+    if any: `Rig.flat_fields[camera.name]`)."""
     f = vignetting_factor(camera.K, camera.width, camera.height, camera.sensor.vignetting)
+    if falloff is not None:
+        f = f * np.asarray(falloff, np.float64)
     if not np.all(np.isfinite(f)) or f.min() < MIN_FACTOR:
         raise ValueError(f"camera {camera.name!r}: vignetting factor below {MIN_FACTOR:g} or not finite "
                          f"(min {np.nanmin(f):.3g}); the flat field is undefined there")

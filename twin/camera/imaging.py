@@ -427,7 +427,8 @@ def pattern_groups(weights: np.ndarray, is_bottom: np.ndarray) -> list[tuple[np.
 
 
 def optics_gain(cam, flat_field=None) -> np.ndarray:
-    """(H, W) float64: the vignetting factor times the flat-field multiplier, if any."""
+    """(H, W) float64: the vignetting factor times the flat-field multiplier, if any (the rig's own map for
+    the camera, `Rig.flat_fields`, unless the caller gives another)."""
     from twin.camera.sensor import vignetting_factor
 
     gain = vignetting_factor(cam.K, cam.width, cam.height, cam.sensor.vignetting)
@@ -468,7 +469,8 @@ def _render(rig, camera_name, surfaces, w, dev, flat_field, chunk_bytes):
     s = _on_device(surfaces, dev)
     H, Wd, S2 = s.height, s.width, s.supersample ** 2
     out = wp.zeros((w.shape[0], H, Wd), dtype=wp.vec3f, device=dev)
-    gain = wp.array(optics_gain(cam, flat_field)[_rows(s)], dtype=wp.float64, device=dev)
+    ff = flat_field if flat_field is not None else rig.flat_fields.get(camera_name)
+    gain = wp.array(optics_gain(cam, ff)[_rows(s)], dtype=wp.float64, device=dev)
     crosstalk = wp.mat33d(*np.asarray(cam.sensor.crosstalk, np.float64).ravel())
     budget = chunk_bytes or RENDER_CHUNK_BYTES["cuda" if dev.is_cuda else "cpu"]
     for ks, leds in pattern_groups(w, rig.is_bottom):
@@ -657,5 +659,5 @@ def render_reference(rig, camera_name: str, surfaces: PixelSurfaces, patterns, *
     S2 = h.supersample ** 2
     img = out.reshape(h.height, h.width, S2, K, 3).mean(axis=2).transpose(2, 0, 1, 3)
     img = apply_crosstalk(img, cam.sensor.crosstalk)  # camera RGB = M @ LED RGB
-    gain = optics_gain(cam, flat_field)[_rows(h)]
+    gain = optics_gain(cam, flat_field if flat_field is not None else rig.flat_fields.get(camera_name))[_rows(h)]
     return (img * gain[None, :, :, None]).astype(np.float32)

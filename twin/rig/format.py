@@ -4,6 +4,8 @@
                         [sample], [frame], [bottom], [[boards]], [[cameras]] (+ [cameras.sensor])
     RIG_DIR/leds.npz    the per-LED arrays of twin.rig.model.LEDs
     RIG_DIR/frame.npz   marker_ids, marker_corners (only when the rig has a holder frame)
+    RIG_DIR/flat_field.npz  per camera name, its (H, W) float32 falloff beyond the radial model (only when
+                        calibrated: calibration.vignetting)
 
 Loading validates everything (twin.rig.model.validate) and never unpickles: npz files are opened with
 allow_pickle=False. Floats are written with repr() in TOML and in their own dtype in npz, so
@@ -46,6 +48,8 @@ def _files(rig: Rig) -> dict[str, bytes]:
     if rig.frame is not None:
         files["frame.npz"] = _npz_bytes({"marker_ids": rig.frame.marker_ids,
                                          "marker_corners": rig.frame.marker_corners})
+    if rig.flat_fields:
+        files["flat_field.npz"] = _npz_bytes(dict(rig.flat_fields))
     return files
 
 
@@ -116,13 +120,24 @@ def load_rig_dir(directory: str | os.PathLike) -> Rig:
             if c["name"] in cameras:
                 raise RigError(f"{toml_path}: two cameras are named {c['name']!r}")
             cameras[c["name"]] = Camera(**c, sensor=sensor)
+        flat_fields = {}
+        if (d / "flat_field.npz").is_file():
+            flat_fields = _load_npz(d / "flat_field.npz", tuple(_npz_keys(d / "flat_field.npz")))
         return Rig(name=doc.get("name", d.name), leds=LEDs(**leds_arrays), boards=boards, cameras=cameras,
                    sample=sample, frame=frame, bottom=bottom, led_profile=doc.get("led_profile", "cosine"),
-                   notes=doc.get("notes", ""))
+                   notes=doc.get("notes", ""), flat_fields=flat_fields)
     except RigError as e:
         raise RigError(f"{d}: {e}") from None
     except (TypeError, KeyError, ValueError) as e:
         raise RigError(f"{d}: malformed rig description ({type(e).__name__}: {e})") from None
+
+
+def _npz_keys(path: Path) -> list[str]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return list(z.files)
+    except (OSError, ValueError, AttributeError) as e:
+        raise RigError(f"{path}: not a readable npz archive ({type(e).__name__}: {e})") from None
 
 
 def _load_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:

@@ -229,10 +229,17 @@ class Rig:
     led_profile: str = "cosine"
     notes: str = ""
     length_unit: str = "mm"
+    # per camera, an (H, W) float32 light-falloff factor beyond the camera's radial vignetting model (a
+    # calibrated flat field: the hood's corners, dust; calibration.vignetting). Cameras without one: radial only
+    flat_fields: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self):
         object.__setattr__(self, "boards", tuple(self.boards))
         object.__setattr__(self, "cameras", MappingProxyType(dict(self.cameras)))
+        maps = {k: np.array(v, dtype=np.float32) for k, v in dict(self.flat_fields).items()}
+        for a in maps.values():
+            a.flags.writeable = False
+        object.__setattr__(self, "flat_fields", MappingProxyType(maps))
         validate(self)
 
     # --- the public API names (kept stable; later issues and external tests use them) ----------
@@ -308,6 +315,14 @@ def validate(rig: Rig) -> None:
         raise RigError("the rig has no LEDs")
     if not rig.cameras:
         raise RigError("the rig has no cameras")
+    for name, ff in rig.flat_fields.items():
+        if name not in rig.cameras:
+            raise RigError(f"flat field for camera {name!r}, which the rig does not have ({list(rig.cameras)})")
+        c = rig.cameras[name]
+        if ff.shape != (c.height, c.width):
+            raise RigError(f"flat field of camera {name!r} is {ff.shape}, the camera is ({c.height}, {c.width})")
+        if not np.all(np.isfinite(ff)) or ff.min() <= 1e-3 or ff.max() > 2:
+            raise RigError(f"flat field of camera {name!r} must be finite and within (0.001, 2]: a falloff factor")
     if leds.board.min() < 0 or leds.board.max() >= len(rig.boards):
         raise RigError(f"leds.board refers to boards outside 0..{len(rig.boards) - 1}")
     for b, board in enumerate(rig.boards):
@@ -423,6 +438,7 @@ def canonical_bytes(rig: Rig) -> bytes:
     arrays = {f"leds.{k}": getattr(rig.leds, k) for k in LEDs.ARRAYS}
     if rig.frame is not None:
         arrays |= {"frame.marker_ids": rig.frame.marker_ids, "frame.marker_corners": rig.frame.marker_corners}
+    arrays |= {f"flat_field.{k}": v for k, v in rig.flat_fields.items()}  # none: the digest of a rig before them
     for k in sorted(arrays):
         a = np.ascontiguousarray(arrays[k])
         parts.append(f"{k}:{a.dtype.str}:{a.shape}".encode() + a.tobytes())

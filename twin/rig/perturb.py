@@ -14,7 +14,8 @@ model (1 + a r^2 + b r^4 + c r^6), so that a flat-field calibration has more to 
 - mechanical vignetting: the lens hood or filter ring cuts the corners, a quadratic shoulder from 0.85 to 1.0
   of the half-diagonal, up to U(5, 15)% deep, centred N(0, 2% of the width) off the principal point;
 - dust on the sensor window: 2-6 soft shadows, Gaussian, sigma U(1, 2.5)% of the width, U(1, 4)% deep.
-The rig keeps the radial part (the rig file's `vignetting`); the other two come back as a per-pixel map.
+The rig keeps the radial part in each camera's `vignetting` and the other two as its per-pixel map
+(`Rig.flat_fields`), so that a capture with it renders the whole falloff.
 LEDs, profiles and colour: not yet.
 """
 from __future__ import annotations
@@ -57,9 +58,9 @@ def perturb_cameras(rig, seed: int):
 
 
 def perturb_vignetting(rig, seed: int):
-    """(the rig with every camera's radial vignetting drawn as the module docstring says, {camera name: the
-    (H, W) float64 per-pixel factor of the mechanical vignetting and the dust, which the rig file cannot
-    hold}), from `seed` alone. twin.camera.imaging.optics_gain(camera, map) is the camera's whole falloff."""
+    """The rig with every camera's radial vignetting drawn as the module docstring says, and the per-pixel
+    factor of its mechanical vignetting and dust as the camera's `Rig.flat_fields` map, from `seed` alone.
+    twin.camera.imaging.optics_gain(camera, rig.flat_fields[name]) is the camera's whole falloff."""
     rng = np.random.default_rng([int(seed), 22])
     cams, extra = {}, {}
     for name, c in rig.cameras.items():
@@ -77,5 +78,5 @@ def perturb_vignetting(rig, seed: int):
             sigma, depth = rng.uniform(0.01, 0.025) * W, rng.uniform(0.01, 0.04)
             dust *= 1 - depth * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma * sigma))
         extra[name] = np.clip(mech, 0.5, 1.0) * dust
-    return replace(rig, cameras=cams), extra
+    return replace(rig, cameras=cams, flat_fields=extra)
 
