@@ -80,63 +80,57 @@ def calibrate_vignetting(nominal, truth, frames: int, seed: int, progress: bool 
 
 def cmd_calibrate(args) -> int:
     import twin
-    from twin.atomic import atomic_folder
-    from twin.rig.format import save_rig
-    from twin.rig.perturb import perturb_cameras
+    from twin.rig.perturb import perturb_cameras, perturb_vignetting
+
+    from .vignetting import FlatFieldError
 
     nominal = twin.load_rig(args.rig)
+    progress = not args.no_progress
     if args.what == "vignetting":
-        return _cmd_vignetting(args, nominal)
-    if args.views < 4:
-        raise ValueError(f"--views {args.views}: the intrinsics need >= 4 views of the board")
-    truth = perturb_cameras(nominal, args.perturb) if args.perturb is not None else nominal
+        if args.frames < 1:
+            raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
+        perturb, errors = perturb_vignetting, FlatFieldError
+        run = lambda truth: calibrate_vignetting(nominal, truth, args.frames, args.seed, progress)  # noqa: E731
+        doc = {"frames": args.frames, "goal": {"flat_field_pct_p95": FLAT_FIELD_GOAL_PCT}}
+
+        def line(r):
+            f, m = r["flat_field_pct"], r["radial_model_pct"]
+            return (f"flat field: median {f['median']:.3f}%  p95 {f['p95']:.3f}%  max {f['max']:.2f}%   radial model "
+                    f"alone: p95 {m['p95']:.3f}%  max {m['max']:.2f}%")
+    else:
+        if args.views < 4:
+            raise ValueError(f"--views {args.views}: the intrinsics need >= 4 views of the board")
+        perturb, errors = perturb_cameras, CalibrationError
+        run = lambda truth: calibrate_cameras(nominal, truth, args.views, args.seed, progress=progress)  # noqa: E731
+        doc = {"views": args.views, "goals": CAMERA_GOALS}
+
+        def line(r):
+            return (f"RMS {r['rms_px']:.3f} px  focal {r['focal_pct']:.4f}%  principal {r['principal_px']:.2f} px  "
+                    f"centre {r['centre_mm']:.2f} mm  rotation {r['rotation_deg']:.3f} deg  sample "
+                    f"{r['sample_px_median']:.3f} px median (nominal rig: {r['nominal_error']['sample_px_median']:.2f})")
+    truth = perturb(nominal, args.perturb) if args.perturb is not None else nominal
     try:
-        rig, report = calibrate_cameras(nominal, truth, args.views, args.seed, progress=not args.no_progress)
-    except CalibrationError as e:
+        rig, report = run(truth)
+    except errors as e:
         raise ValueError(f"calibration failed, no rig written: {e}") from None
-    doc = {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed, "views": args.views,
-           "goals": CAMERA_GOALS, "cameras": report}
-    with atomic_folder(Path(args.output), overwrite=True) as tmp:  # nothing is left from a failed run
-        save_rig(rig, tmp / "rig")
-        save_rig(truth, tmp / "truth")  # the truth beside the result, for scoring
-        (tmp / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+    _write(Path(args.output), rig, truth, {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed,
+                                           **doc, "cameras": report})
     w = max(len(n) for n in report)
     for name, r in report.items():
-        print(f"{name:<{w}}  RMS {r['rms_px']:.3f} px  focal {r['focal_pct']:.4f}%  principal {r['principal_px']:.2f} px  "
-              f"centre {r['centre_mm']:.2f} mm  rotation {r['rotation_deg']:.3f} deg  sample {r['sample_px_median']:.3f} px "
-              f"median (nominal rig: {r['nominal_error']['sample_px_median']:.2f})  {'pass' if r['passed'] else 'FAIL'}")
+        print(f"{name:<{w}}  {line(r)}  {'pass' if r['passed'] else 'FAIL'}")
     print(f"calibrated rig: {args.output}/rig (truth: {args.output}/truth, report: {args.output}/report.json)")
     return 0 if all(r["passed"] for r in report.values()) else 1
 
 
-def _cmd_vignetting(args, nominal) -> int:
+def _write(output: Path, rig, truth, doc: dict) -> None:
+    """OUT/rig (calibrated), OUT/truth (the true device, for scoring) and OUT/report.json, all or nothing."""
     from twin.atomic import atomic_folder
     from twin.rig.format import save_rig
-    from twin.rig.perturb import perturb_vignetting
 
-    if args.frames < 1:
-        raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
-    truth = perturb_vignetting(nominal, args.perturb) if args.perturb is not None else nominal
-    from .vignetting import FlatFieldError
-
-    try:
-        rig, report = calibrate_vignetting(nominal, truth, args.frames, args.seed, progress=not args.no_progress)
-    except FlatFieldError as e:
-        raise ValueError(f"calibration failed, no rig written: {e}") from None
-    doc = {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed, "frames": args.frames,
-           "goal": {"flat_field_pct_p95": FLAT_FIELD_GOAL_PCT}, "cameras": report}
-    with atomic_folder(Path(args.output), overwrite=True) as tmp:  # nothing is left from a failed run
+    with atomic_folder(output, overwrite=True) as tmp:  # nothing is left from a failed run
         save_rig(rig, tmp / "rig")
-        save_rig(truth, tmp / "truth")  # the truth beside the result, for scoring
+        save_rig(truth, tmp / "truth")
         (tmp / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
-    w = max(len(n) for n in report)
-    for name, r in report.items():
-        f, m = r["flat_field_pct"], r["radial_model_pct"]
-        print(f"{name:<{w}}  flat field: median {f['median']:.3f}%  p95 {f['p95']:.3f}%  max {f['max']:.2f}%   radial "
-              f"model alone: p95 {m['p95']:.3f}%  max {m['max']:.2f}%  {'pass' if r['passed'] else 'FAIL'}")
-    print(f"calibrated rig (radial coefficients and flat_field.npz): {args.output}/rig (truth: {args.output}/truth, "
-          f"report: {args.output}/report.json)")
-    return 0 if all(r["passed"] for r in report.values()) else 1
 
 
 def register(sub) -> None:
