@@ -62,10 +62,12 @@ class Reconstruction:
 def load_network(name: str, rig, device="cpu"):
     """The acquisition network: the one shipped for `rig` ("pretrained") or a `hemicube train` run folder."""
     if name == "pretrained":
+        from twin.rig.builtin import serves_for
+
         from .pretrained import load_pretrained, pretrained_info
 
         info = pretrained_info(rig.name)
-        if info is None or info["rig_digest"] != rig.digest():
+        if info is None or not serves_for(rig, info["rig_digest"]):  # a vignetting calibration keeps the network
             raise ValueError(f"no network ships for rig {rig.name!r}; train one (`hemicube train --rig ...`) and "
                              "pass its run folder (--network RUN)")
         return load_pretrained(rig.name, device)[0]

@@ -49,9 +49,12 @@ def load_pretrained(rig_name: str = "mini", device: str = "cpu") -> tuple[Acquis
 
 def pretrained_patterns(rig):
     """The shipped network's learned patterns for `rig` (a twin.capture.patterns.PatternSet), or None when no
-    network ships for it or it was trained on a different rig (digest mismatch)."""
+    network ships for it or it was trained on a different rig (twin.rig.builtin.serves_for: a calibration of the cameras'
+    light recording keeps it)."""
+    from twin.rig.builtin import serves_for
+
     info = pretrained_info(rig.name)
-    if info is None or info["rig_digest"] != rig.digest():
+    if info is None or not serves_for(rig, info["rig_digest"]):
         return None
     model, info = load_pretrained(rig.name)
     return export_patterns(model, rig, note=f"learned patterns of the shipped {rig.name} network "

@@ -113,3 +113,42 @@ def test_bad_flat_field_photos_are_named():
         calibrate_flat_field([good, good], cam, saturated=[np.zeros_like(sat), sat])
     with pytest.raises(FlatFieldError, match="flat-field photo 0: dark"):
         calibrate_flat_field([np.zeros_like(good)], cam)
+
+
+def test_a_vignetting_calibration_keeps_the_network_and_patterns(calibrated):
+    """The shipped network and the default patterns depend on the rig's geometry, not on how its cameras record
+    light (Rig.geometry_digest): a flat-field calibration keeps them; moving a camera does not."""
+    from reconstruction.pipeline import load_network
+    from twin.capture.plan import default_learned
+    from twin.rig.builtin import serves_for
+    from twin.rig.perturb import perturb_cameras
+
+    nominal, truth, rig, _ = calibrated
+    assert rig.digest() != nominal.digest() and rig.geometry_digest() == nominal.geometry_digest()
+    assert serves_for(rig, nominal.digest()) and serves_for(truth, nominal.digest())
+    assert default_learned(rig) is not None and load_network("pretrained", rig) is not None
+    moved = perturb_cameras(nominal, 1)
+    assert not serves_for(moved, nominal.digest()) and default_learned(moved) is None
+
+
+def test_capture_renders_the_truth_and_records_the_calibration(calibrated, tmp_path):
+    """`hemicube capture --truth`: the simulator renders with the true device while the folder records the
+    calibrated rig, as a real device's capture records its calibration. The photos are those of the truth
+    (same bytes as a capture recording the truth itself), and a truth of another geometry is refused."""
+    from twin.capture.plan import build_patterns, paper_plan
+    from twin.capture.runner import CaptureError, capture, open_backends, photos
+    from twin.materials.samples import load_sample
+    from twin.rig.perturb import perturb_cameras
+
+    nominal, truth, rig, _ = calibrated
+    maps = load_sample("ramps", resolution=32)
+    patterns = build_patterns(rig)
+    todo = [p for p in paper_plan(rig, patterns) if p.pattern == "uniform"]
+    raws = []
+    for recorded, physics in ((rig, truth), (truth, None)):
+        with open_backends(recorded, maps, "sim", 1, "cpu", truth=physics) as sims:
+            raws.append([r.numpy().copy() for _, r, _, _ in photos(recorded, sims, patterns, todo, "cpu")])
+    assert all(np.array_equal(a, b) for a, b in zip(*raws))
+    with pytest.raises(CaptureError, match="is not a calibration of it"):
+        capture(rig, "ramps", tmp_path / "cap", truth=perturb_cameras(nominal, 1), resolution=32, progress=False)
+    assert not (tmp_path / "cap").exists()

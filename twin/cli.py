@@ -119,7 +119,8 @@ def cmd_capture(args) -> int:
                "prompt": input if args.backend == "hardware" and args.cameras == "basler" else None}
     devices = {k: v for k, v in devices.items() if v is not None}  # the simulator refuses any
     out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
-                  resolution=args.resolution, learned=learned, progress=not args.no_progress, devices=devices)
+                  resolution=args.resolution, learned=learned, progress=not args.no_progress, devices=devices,
+                  truth=_rig_arg(args.truth) if args.truth else None)
     bad = verify(out)
     if bad:
         print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)
@@ -232,6 +233,8 @@ def register(sub) -> None:
     s.add_argument("--camera-faults", help="hardware, emulated: faults injected before triggers, e.g. "
                    "failed=0.02,disconnect=0.005,stray=0.01,seed=1 (docs/reliability.md)")
     s.add_argument("--rig", default="mini", help=RIG_HELP)
+    s.add_argument("--truth", help="sim: the rig the twin renders with (a true device, e.g. `hemicube calibrate "
+                   "--perturb`'s truth/), while the capture records --rig (its calibration)")
     s.add_argument("--sample", default="ramps", help="built-in sample (`hemicube samples list`) or a folder of "
                    "OpenSVBRDF maps (default: %(default)s)")
     s.add_argument("--seed", type=int, default=0, help="seed of the sensor noise and of seeded samples "

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from twin.capture import pattern_sets
 from twin.capture.patterns import load_patterns
+from twin.rig.builtin import serves_for
 
 BRACKET = 3  # raw frames per photo
 BRACKET_RATIO = 8.0
@@ -58,7 +59,7 @@ def default_learned(rig):
     were made for), or None."""
     index = DEFAULT_PATTERNS / "index.toml"
     entry = tomllib.loads(index.read_text()).get(rig.name) if index.is_file() else None
-    if entry is None or entry["rig_digest"] != rig.digest():
+    if entry is None or not serves_for(rig, entry["rig_digest"]):  # a vignetting calibration keeps them
         return None
     return load_patterns(DEFAULT_PATTERNS / entry["file"])
 

@@ -52,9 +52,10 @@ class HostCopies:
         return out
 
 
-def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict | None = None):
+def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict | None = None, truth=None):
     """The plan's two scenes, the sample and the empty board (the transparency reference), on `backend`, open
-    for a `with` block; `devices` are the hardware backend's options (twin.capture.backends.hardware)."""
+    for a `with` block; `devices` are the hardware backend's options (twin.capture.backends.hardware); `truth`
+    the simulator's true device (see `capture`)."""
     from twin.capture.backends import BACKENDS, open_backends as open_named
 
     devices = devices or {}
@@ -62,6 +63,10 @@ def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict
         raise CaptureError(f"unknown backend {backend!r}; available: {sorted(BACKENDS)}")
     if backend == "sim" and devices:
         raise CaptureError(f"{', '.join(sorted(devices))}: options of --backend hardware, not of the simulator")
+    if truth is not None:
+        if backend != "sim":
+            raise CaptureError("--truth is the simulator's true device; the hardware is its own")
+        return open_named(backend, rig, maps, seed=seed, device=device, truth=truth)
     return open_named(backend, rig, maps, seed=seed, device=device, **devices)
 
 
@@ -101,7 +106,7 @@ def photos(rig, sims: dict, patterns, todo, device: str, stage=None):
 
 
 def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", resolution: int = 128, learned=None,
-                   cameras: str | None = None) -> tuple[dict, object, list]:
+                   cameras: str | None = None, truth=None) -> tuple[dict, object, list]:
     """(the manifest header, the pattern set, the plan) of the capture these arguments describe: what a capture
     folder must hold to be resumed (or, finished, to be reused) for them."""
     patterns = build_patterns(rig, learned)
@@ -113,25 +118,34 @@ def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", res
               "units": {"hdr": "W m^-2 sr^-1 (linear, camera RGB)", "length": "mm"}}
     if backend != "sim":  # a resume must not mix emulated and real cameras
         header["cameras"] = cameras
+    if truth is not None:  # rendered with another rig than the one recorded: say which
+        header["simulated_with"] = {"rig": truth.name, "rig_digest": truth.digest()}
     return header, patterns, plan
 
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
-            resolution: int = 128, learned=None, progress: bool = True, devices: dict | None = None) -> Path:
+            resolution: int = 128, learned=None, progress: bool = True, devices: dict | None = None,
+            truth=None) -> Path:
     """Run the plan into `output` (resuming a killed run there). Returns the folder. `devices` are the
-    hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). Everything
-    that can be checked, the devices included, is checked before the folder is made; a folder this call made
-    is removed again when it fails before its first photo."""
+    hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
+    (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
+    calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must have
+    `rig`'s geometry (Rig.geometry_digest): a calibration of how the cameras record light. Everything that can
+    be checked, the devices included, is checked before the folder is made; a folder this call made is removed
+    again when it fails before its first photo."""
     from twin.materials.samples import load_sample
     from twin.optics.inputs import check_device
 
     device = check_device(device)
     devices = {k: v for k, v in (devices or {}).items() if v is not None}
+    if truth is not None and truth.geometry_digest() != rig.geometry_digest():
+        raise CaptureError(f"--truth {truth.name!r} differs from rig {rig.name!r} in more than how its cameras "
+                           "record light (LEDs, sample plane or camera geometry): it is not a calibration of it")
     # the twin renders (and so knows the ground truth) unless real cameras take the photos
     maps = load_sample(sample, resolution=resolution) if devices.get("cameras") != "basler" else None
     header, patterns, plan = capture_header(rig, sample, seed=seed, backend=backend, resolution=resolution,
-                                            learned=learned, cameras=devices.get("cameras"))
-    with open_backends(rig, maps, backend, seed, device, devices) as sims, \
+                                            learned=learned, cameras=devices.get("cameras"), truth=truth)
+    with open_backends(rig, maps, backend, seed, device, devices, truth) as sims, \
             CaptureSession.create(output, header) as session:
         session.write_setup(patterns, rig, maps)
         for c, cam in enumerate(rig.cameras):

@@ -180,3 +180,17 @@ def mini_rig() -> Rig:
 
 
 BUILTIN = {"paper": paper_rig, "mini": mini_rig}
+
+
+def serves_for(rig: Rig, recorded_digest: str) -> bool:
+    """Whether something made for a rig of `rig`'s name with digest `recorded_digest` (a shipped network, the
+    default patterns) serves `rig`: it is that rig, or the built-in rig of that name has that digest and
+    differs from `rig` only in how the cameras record light (Rig.geometry_digest: a vignetting or colour
+    calibration of it)."""
+    if recorded_digest == rig.digest():
+        return True
+    if rig.name not in BUILTIN:
+        return False
+    builtin = BUILTIN[rig.name]()
+    return builtin.digest() == recorded_digest and builtin.geometry_digest() == rig.geometry_digest()
+

@@ -9,14 +9,14 @@ interchangeable with the reference; bottom LEDs, when present, follow them.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from types import MappingProxyType
 from typing import Mapping
 
 import numpy as np
 import tomli_w
 
-from twin.rig.camera import Camera
+from twin.rig.camera import Camera, SensorParams
 from twin.rig.cross import CROSS_SHAPE
 
 RIG_FORMAT_VERSION = 1
@@ -277,6 +277,15 @@ class Rig:
         if "_digest" not in self.__dict__:  # immutable, so computed once; bypasses the frozen __setattr__
             self.__dict__["_digest"] = hashlib.sha256(canonical_bytes(self)).hexdigest()
         return self.__dict__["_digest"]
+
+    def geometry_digest(self) -> str:
+        """sha256 of the rig without how its cameras record light (their sensors: noise, vignetting, crosstalk;
+        the per-pixel flat fields), i.e. of what an acquisition network and its patterns depend on: the LEDs,
+        their profile, the boards, the sample plane, the cameras' poses and lenses. A calibration of the
+        former keeps it."""
+        plain = replace(self, cameras={n: replace(c, sensor=SensorParams()) for n, c in self.cameras.items()},
+                        flat_fields={})
+        return plain.digest()
 
     def summary(self) -> dict:
         """What `hemicube rig info` prints."""

@@ -24,9 +24,12 @@ from twin.capture.backends.sim import SimBackend
 
 
 @contextmanager
-def _open_sim(rig, maps, *, seed: int, device: str = "cpu"):
-    yield {"sample": SimBackend(rig, maps, seed=seed, device=device),
-           "empty": SimBackend(rig, None, seed=seed, device=device)}
+def _open_sim(rig, maps, *, seed: int, device: str = "cpu", truth=None):
+    """`truth`: the rig the simulator renders with (the true device), when the capture records another (its
+    calibration); it must have the same geometry (twin.capture.runner.capture checks)."""
+    physics = truth if truth is not None else rig
+    yield {"sample": SimBackend(physics, maps, seed=seed, device=device),
+           "empty": SimBackend(physics, None, seed=seed, device=device)}
 
 
 BACKENDS = {"sim": _open_sim, "hardware": open_hardware}
