@@ -97,22 +97,24 @@ def evaluate(capture, recon, rig, device="cpu") -> tuple[dict, list]:
     return metrics, panels + map_panels(truth, recon.maps, mask=on_sample)
 
 
-# The goals every sample must meet on the mini rig (issue #14), whatever the sample, set from the goals (the
-# paper's Fig. 13 "almost exactly" and this project's targets), not from any sample's measured value. They
-# apply at every texture-grid resolution: a grid the pipeline cannot reach them at fails, honestly.
-GOALS = {
-    "mini": [
-        Threshold("alignment.median_px", "<=", 0.5, "goal: half a pixel"),
-        Threshold("maps.normal_deg.median", "<=", 1.0, "goal"),
-        Threshold("maps.tangent_deg.median", "<=", 5.0, "goal, where alpha_x/alpha_y >= 1.5",
-                  applies_if="maps.tangent_deg.count"),
-        Threshold("maps.alpha_x_pct.median", "<=", 10.0, "goal"),
-        Threshold("maps.alpha_y_pct.median", "<=", 10.0, "goal"),
-        Threshold("maps.rho_d_pct.median", "<=", 3.0, "goal"),
-        Threshold("maps.rho_s_pct.median", "<=", 10.0, "goal"),
-        Threshold("render.maps.ssim", ">=", 0.93, "goal: fitted maps render the held-out photo"),
-    ],
-}
+# The goals every sample must meet (issue #14), whatever the sample, set from the goals (the paper's Fig. 13
+# "almost exactly" and this project's targets), not from any sample's measured value. They apply at every
+# texture-grid resolution: a grid the pipeline cannot reach them at fails, honestly. The paper rig is held to
+# the same ones and, as issue #13 sets, to the paper's SSIM of 0.98 on real data (§10.1) for the latent render
+# against the held-out photo.
+_GOALS = [
+    Threshold("alignment.median_px", "<=", 0.5, "goal: half a pixel"),
+    Threshold("maps.normal_deg.median", "<=", 1.0, "goal"),
+    Threshold("maps.tangent_deg.median", "<=", 5.0, "goal, where alpha_x/alpha_y >= 1.5",
+              applies_if="maps.tangent_deg.count"),
+    Threshold("maps.alpha_x_pct.median", "<=", 10.0, "goal"),
+    Threshold("maps.alpha_y_pct.median", "<=", 10.0, "goal"),
+    Threshold("maps.rho_d_pct.median", "<=", 3.0, "goal"),
+    Threshold("maps.rho_s_pct.median", "<=", 10.0, "goal"),
+    Threshold("render.maps.ssim", ">=", 0.93, "goal: fitted maps render the held-out photo"),
+]
+GOALS = {"mini": _GOALS,
+         "paper": _GOALS + [Threshold("render.latent.ssim", ">=", 0.98, "goal: the paper's SSIM 0.98 (§10.1)")]}
 DEFAULT_SAMPLE = "ramps"
 
 

@@ -100,3 +100,14 @@ def test_suite_report_and_table(suite_run):
     report = suite_run["report"]  # OUTPUT/report/report.md
     assert report.name == "report.md" and all(name in report.read_text() for name in SUITE + HELD_BACK)
     assert len(list(report.parent.rglob("*.png"))) >= len(SUITE + HELD_BACK)
+
+
+def test_paper_rig_goals_are_the_suites_and_the_latent_render():
+    """The paper rig is held to the suite's goals and to issue #13's SSIM >= 0.98 of the latent render,
+    whatever the sample or grid (no paper-rig measurement sets them)."""
+    from reconstruction.validation import GOALS, thresholds_for
+
+    paper = thresholds_for("paper", 1024, "ramps")
+    assert [t.metric for t in paper] == [t.metric for t in GOALS["mini"]] + ["render.latent.ssim"]
+    assert paper[-1].op == ">=" and paper[-1].value == 0.98
+    assert thresholds_for("no such rig", 64, "satin") == []
