@@ -15,7 +15,7 @@ def cmd_validate(args) -> int:
                          resolution=args.resolution, seed=args.seed, jobs=args.jobs, as_json=args.json)
     return run_validation(rig=args.rig, sample=args.sample, device=args.device, as_json=args.json,
                           output=args.output, resolution=args.resolution, seed=args.seed,
-                          progress=not args.no_progress)
+                          progress=not args.no_progress, anyway=args.anyway)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,6 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resolution", type=int, help="texture grid texels per side (default: the pipeline's, 48)")
     s.add_argument("--seed", type=int, default=1, help="the virtual capture's seed (default: %(default)s)")
     s.add_argument("--no-progress", action="store_true", help="no progress output")
+    s.add_argument("--anyway", action="store_true", help="on the CPU, run even a capture estimated to take "
+                   "hours (the paper rig) instead of stopping with the estimate")
     s.set_defaults(func=cmd_validate)
 
     bench = sub.add_parser("bench", help="benchmarks; print JSON").add_subparsers(dest="bench_command",

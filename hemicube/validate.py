@@ -79,14 +79,60 @@ def _print_checks(checks) -> None:
               f"(threshold {c.threshold:g})  -- {c.compared}")
 
 
+# a capture whose render evaluates more LED responses than this gets a timed estimate first on the CPU (the
+# mini rig's plan is ~10^9: minutes; the paper rig's ~3 x 10^11: hours)
+ESTIMATE_ABOVE = 1e10
+TOO_LONG_S = 1800  # on the CPU, refuse (unless anyway) a capture estimated to take longer than this
+
+
+def capture_evaluations(rig_obj, maps) -> float:
+    """LED responses the capture's render evaluates: every sub-pixel ray of every camera, on the sample and on
+    the empty board, times the rig's LEDs (an upper bound: each pattern group evaluates only its lit LEDs)."""
+    from twin.camera.imaging import _supersampling
+
+    rays = sum(c.width * c.height * (_supersampling(rig_obj, n, maps, None) ** 2 + 1)
+               for n, c in rig_obj.cameras.items())
+    return float(rays) * rig_obj.num_leds
+
+
+def cpu_capture_estimate(rig_obj, maps, rows: int = 1) -> dict:
+    """Seconds the capture's render would take on this CPU, from a timed render of `rows` rows of the primary
+    camera with every pattern of the plan, scaled by the rays (sample and empty board, all cameras). The
+    sensor and HDR stages and the files add to it; the reconstruction comes on top."""
+    from twin.camera.imaging import _supersampling, render, trace_pixels
+    from twin.capture.plan import build_patterns
+
+    name, cam = next(iter(rig_obj.cameras.items()))
+    mid = cam.height // 2
+    weights = build_patterns(rig_obj).weights
+    surfaces = trace_pixels(rig_obj, name, maps, rows=(mid, mid + rows))
+    render(rig_obj, name, trace_pixels(rig_obj, name, maps, rows=(0, 1)), weights[:1])  # kernels loaded, not timed
+    t = time.perf_counter()
+    render(rig_obj, name, surfaces, weights)
+    timed = time.perf_counter() - t
+    total = capture_evaluations(rig_obj, maps)
+    share = rows * cam.width * _supersampling(rig_obj, name, maps, None) ** 2 * rig_obj.num_leds / total
+    return {"render_s": timed / share, "timed_s": timed, "evaluations": total}
+
+
 def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, output=None,
-                   resolution: int | None = None, seed: int = 1, progress: bool = True) -> int:
+                   resolution: int | None = None, seed: int = 1, progress: bool = True, anyway: bool = False) -> int:
     """The main job: rig and forward-model checks, then capture -> reconstruct -> score (see the module
-    docstring). Exit code 0 when every check and every threshold passes."""
+    docstring). Exit code 0 when every check and every threshold passes. On the CPU, a rig whose capture
+    would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
     import twin
     from reconstruction.metrics import format_table
+    from twin.materials.samples import load_sample
 
     rig_obj = twin.load_rig(rig)
+    if device == "cpu" and not anyway:
+        maps = load_sample(sample, resolution=128)
+        if capture_evaluations(rig_obj, maps) > ESTIMATE_ABOVE and \
+                (est := cpu_capture_estimate(rig_obj, maps))["render_s"] > TOO_LONG_S:
+            raise ValueError(
+                f"validate --rig {rig_obj.name} on the CPU: its capture alone would take about "
+                f"{est['render_s'] / 3600:.1f} h here ({est['evaluations']:.1e} LED evaluations; one row took "
+                f"{est['timed_s']:.1f} s), before the reconstruction's hours; use --device cuda, or --anyway to run it")
     checks, ref = _self_checks(rig_obj, device)
     out = Path(output) if output else DEFAULT_ROOT / f"{rig_obj.name}_{_sample_name(sample)}_seed{seed}"
     metrics, rows, paths = end_to_end(rig_obj, sample, device, out, resolution, seed, progress and not as_json)

@@ -111,3 +111,15 @@ def test_paper_rig_goals_are_the_suites_and_the_latent_render():
     assert [t.metric for t in paper] == [t.metric for t in GOALS["mini"]] + ["render.latent.ssim"]
     assert paper[-1].op == ">=" and paper[-1].value == 0.98
     assert thresholds_for("no such rig", 64, "satin") == []
+
+
+def test_paper_rig_on_the_cpu_says_how_long_instead_of_running(tmp_path, capsys):
+    """Issue #13 item 5: `hemicube validate --rig paper` on the CPU stops at once with a timed estimate (hours)
+    and what to do, in one line, and makes no folder."""
+    rc = hemicube.cli.main(["validate", "--rig", "paper", "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0, err
+    hours = float(err.split("would take about ")[1].split(" h")[0])
+    assert hours > 1 and "--device cuda" in err and "--anyway" in err
+    assert not (tmp_path / "out").exists()
+
