@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 
 def cmd_reconstruct(args) -> int:
@@ -26,7 +27,8 @@ def cmd_train(args) -> int:
                               ("device", args.device), ("eval_every", args.eval_every),
                               ("checkpoint_every", args.checkpoint_every),
                               ("pair_fraction", args.pair_fraction), ("dropout", args.dropout),
-                              ("measurement_noise", args.measurement_noise))
+                              ("measurement_noise", args.measurement_noise),
+                              ("architecture", args.architecture))
             if v is not None}
     cfg = replace(cfg, **over)
     try:
@@ -44,6 +46,27 @@ def cmd_train(args) -> int:
     if m["stopped_on_time_limit"]:
         print(f"stopped on the time limit ({args.time_limit:g} s) at step {m['steps']} of {cfg.steps}; "
               "run the same command again to resume")
+    return 0
+
+
+def cmd_network(args) -> int:
+    """`hemicube network score RUN`: score_network's figures of a run's network (JSON); `hemicube network ship
+    RUN`: make the shipped files from it (reconstruction.pretrained)."""
+    import torch
+
+    import twin
+
+    from .pretrained import score_network, ship_network
+    from .train import TrainConfig, load_run_model
+
+    if args.network_command == "ship":
+        info = ship_network(args.run, args.output, args.device, args.commit)
+        print(json.dumps({k: info[k] for k in ("rig", "architecture", "num_parameters", "heldout_loss", "scores")},
+                         indent=2))
+        return 0
+    config = TrainConfig.from_json(json.loads((Path(args.run) / "metrics.json").read_text())["config"])
+    model = load_run_model(args.run, args.device)
+    print(json.dumps(score_network(model, twin.load_rig(config.rig), config, torch.device(args.device)), indent=2))
     return 0
 
 
@@ -118,6 +141,8 @@ def register(sub) -> None:
                    f"(default: {tc.pair_fraction})")
     s.add_argument("--dropout", type=float, help=f"dropout on every layer but the last, 0-1 (default: {tc.dropout}, "
                    "paper §6)")
+    s.add_argument("--architecture", choices=("paper", "compact"), help=f"network: the released one scaled to the "
+                   f"rig, or the compact one that ships (default: {tc.architecture})")
     s.add_argument("--measurement-noise", type=float, help=f"sigma of the multiplicative noise on the measurements in "
                    f"training (default: {tc.measurement_noise}, paper §6)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="checkpoint and stop after this many "
@@ -125,6 +150,21 @@ def register(sub) -> None:
     s.add_argument("-o", "--output", required=True, help="run folder (re-run to resume)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     s.set_defaults(func=cmd_train)
+
+
+    net = sub.add_parser("network", help="score a trained network, or make the shipped files from it"
+                         ).add_subparsers(dest="network_command", required=True)
+    for name, text in (("score", "held-out figures of a `hemicube train` run's network, as JSON"),
+                       ("ship", "write reconstruction/pretrained/<rig>/ (model.safetensors, model.json) from a "
+                                "`hemicube train` run, float16 weight matrices, scored as shipped")):
+        s = net.add_parser(name, help=text)
+        s.add_argument("run", help="a `hemicube train` run folder")
+        s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
+        if name == "ship":
+            s.add_argument("-o", "--output", help="folder for the two files (default: the package's "
+                           "reconstruction/pretrained/<rig>)")
+            s.add_argument("--commit", default="", help="the commit the run was made at, for model.json (default: none)")
+        s.set_defaults(func=cmd_network)
 
 
 def register_bench(bench) -> None:

@@ -35,6 +35,16 @@ hidden widths scale with L / 12,288 so that a rig of a few hundred LEDs trains o
   views * K; output widths = albedo_dim, shape_dim. Along the albedo path this is 1 + 5 + 11 = 17 fully
   connected layers, the paper's count; the released shape branch has one layer more (6).
 
+The compact architecture (`NetworkConfig.architecture = "compact"`, issue #13 item 1) exists because the
+released decoder cannot ship: its 12,288-LED output layer alone is 100 M parameters. It keeps the released
+decoder's first five hidden layers (to 1024 for L = 12,288) and replaces the rest by a factorised output
+layer: a linear bottleneck of `COMPACT_RANK` (256, scaled like the hidden widths, at least 64) with no
+activation, then the output layer. The lumitexel is thus a non-negative-clamped exp of a combination of 256
+learned log-lumitexel bases, with coefficients a 5-layer MLP computes from the latent (a GGX lobe over the
+LED dome is a smooth function of direction, which a few hundred bases can hold; how much it gives up on
+narrow peaks is measured in docs/performance.md). Its encoder is the released one at half the hidden
+widths. For the paper rig: 6.5 M parameters, 13 MB as float16 (`reconstruction.pretrained` ships float16).
+
 The mini rig (396 upper LEDs) gets a 260 k-parameter network (decoder 56 -> 64 x 5 -> 72 -> 72 -> 136 ->
 136 -> 264 -> 396); the paper rig gets the released 166 M-parameter decoder. Small models train fastest
 on a CPU with `torch.set_num_threads(1)` when the cores are shared.
@@ -56,7 +66,7 @@ from torch import nn
 
 __all__ = [
     "NetworkConfig", "REFERENCE_NUM_LEDS", "REFERENCE_DECODER_WIDTHS", "REFERENCE_ALBEDO_HIDDEN",
-    "REFERENCE_SHAPE_HIDDEN", "decoder_widths", "encoder_widths", "PatternLayer", "Encoder", "Decoder",
+    "REFERENCE_SHAPE_HIDDEN", "ARCHITECTURES", "decoder_widths", "encoder_widths", "PatternLayer", "Encoder", "Decoder",
     "AcquisitionNet", "lumitexel_loss", "albedo_swap_loss", "log_to_lumitexel", "count_parameters",
 ]
 
@@ -65,6 +75,10 @@ REFERENCE_DECODER_WIDTHS = (56, 128, 256, 256, 512, 1024, 2048, 2048, 4096, 4096
 REFERENCE_ALBEDO_HIDDEN = (256, 1024, 512, 64)          # released albedo branch: 64 -> these -> 8
 REFERENCE_SHAPE_HIDDEN = (256, 1024, 3072, 1024, 256)    # released shape branch: 64 -> these -> 48
 MIN_HIDDEN = 64
+ARCHITECTURES = ("paper", "compact")
+COMPACT_TRUNK = 5     # compact decoder: the released decoder's first five hidden layers (to 1024 at L = 12,288)
+COMPACT_RANK = 256    # compact decoder: the factorised output layer's rank at L = 12,288
+COMPACT_ENCODER = 0.5  # compact encoder: the released branches' hidden widths times this
 LEVELS = 255  # 8-bit LED drive (paper §5)
 
 
@@ -89,6 +103,8 @@ class NetworkConfig:
                        (paper: 5%); 0 disables it.
     negative_slope     LeakyReLU slope (released: PyTorch's default 0.01).
     quantise           8-bit quantisation of the patterns in the loop (straight-through).
+    architecture       "paper" (the released decoder and encoder, scaled to L) or "compact" (see the module
+                       docstring: a factorised output layer and half-width encoder, small enough to ship).
     shared_patterns    True (default): one pattern set photographed by every camera, the physical capture
                        (reference §3.2: the same 64 photos, 32 (+, -) pairs, are seen by camera 0 and
                        camera 1; the capture plan shows 64 learned frames once). False: an independent set
@@ -106,6 +122,7 @@ class NetworkConfig:
     negative_slope: float = 0.01
     quantise: bool = True
     shared_patterns: bool = True
+    architecture: str = "paper"
 
     def __post_init__(self):
         for name in ("num_leds", "patterns_per_view", "views", "albedo_dim", "shape_dim"):
@@ -122,6 +139,8 @@ class NetworkConfig:
         for name in ("quantise", "shared_patterns"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"NetworkConfig.{name} must be a bool, got {getattr(self, name)!r}")
+        if self.architecture not in ARCHITECTURES:
+            raise ValueError(f"NetworkConfig.architecture must be one of {ARCHITECTURES}, got {self.architecture!r}")
 
     @property
     def latent_dim(self) -> int:
@@ -136,22 +155,29 @@ def _ceil8(x: float) -> int:
     return int(math.ceil(x / 8.0 - 1e-9)) * 8
 
 
-def decoder_widths(num_leds: int, latent_dim: int = 56) -> list[int]:
-    """Layer widths of the lumitexel decoder, input first: 12 numbers for 11 linear layers.
+def decoder_widths(num_leds: int, latent_dim: int = 56, architecture: str = "paper") -> list[int]:
+    """Layer widths of the lumitexel decoder, input first, output (L) last.
 
-    The released decoder (L = 12,288) with hidden widths scaled by L / 12,288, rounded up to a multiple of
-    8, at least 64, then a running maximum (monotone non-decreasing); last = L. Exactly the released widths
-    for L = 12,288 and latent_dim = 56.
+    "paper": 12 numbers for 11 linear layers, the released decoder (L = 12,288) with hidden widths scaled by
+    L / 12,288, rounded up to a multiple of 8, at least 64, then a running maximum (monotone non-decreasing).
+    Exactly the released widths for L = 12,288 and latent_dim = 56.
+    "compact": the first COMPACT_TRUNK of those hidden widths, then the bottleneck rank (COMPACT_RANK scaled
+    the same way), then L: 8 numbers for 7 linear layers (the last two, without an activation between
+    them, are the factorised output layer).
     """
     if not _is_int(num_leds) or num_leds < 1:
         raise ValueError(f"num_leds must be a positive integer, got {num_leds!r}")
     if not _is_int(latent_dim) or latent_dim < 1:
         raise ValueError(f"latent_dim must be a positive integer, got {latent_dim!r}")
+    if architecture not in ARCHITECTURES:
+        raise ValueError(f"architecture must be one of {ARCHITECTURES}, got {architecture!r}")
     scale = num_leds / REFERENCE_NUM_LEDS
     hidden, running = [], 0
     for h in REFERENCE_DECODER_WIDTHS[1:-1]:
         running = max(running, MIN_HIDDEN, _ceil8(h * scale))
         hidden.append(running)
+    if architecture == "compact":
+        hidden = [*hidden[:COMPACT_TRUNK], max(MIN_HIDDEN, _ceil8(COMPACT_RANK * scale))]
     return [int(latent_dim), *hidden, int(num_leds)]
 
 
@@ -162,6 +188,8 @@ def _scaled_branch(hidden, scale: float) -> list[int]:
 def encoder_widths(config: NetworkConfig) -> tuple[list[int], list[int]]:
     """(albedo branch widths, shape branch widths), input first, output last (see the module docstring)."""
     scale = min(1.0, config.num_leds / REFERENCE_NUM_LEDS)
+    if config.architecture == "compact":
+        scale *= COMPACT_ENCODER
     n_in = config.num_measurements
     albedo = [n_in, *_scaled_branch(REFERENCE_ALBEDO_HIDDEN, scale), config.albedo_dim]
     shape = [n_in, *_scaled_branch(REFERENCE_SHAPE_HIDDEN, scale), config.shape_dim]
@@ -336,15 +364,20 @@ class Decoder(nn.Module):
 
     The released lumi net with `decoder_widths` (11 linear layers), LeakyReLU after every layer except the
     last, dropout after every layer except the last (paper §6), no BatchNorm (as released), Xavier
-    initialisation (uniform, LeakyReLU gain, zero bias). The output is log(1 + m);
+    initialisation (uniform, LeakyReLU gain, zero bias). The compact architecture ends in the factorised
+    output layer instead: its bottleneck layer has neither activation nor dropout. The output is log(1 + m);
     `decode_lumitexel` gives m = max(exp(out) - 1, 0).
     """
 
     def __init__(self, config: NetworkConfig):
         super().__init__()
         self.config = config
-        self.widths = decoder_widths(config.num_leds, config.latent_dim)
-        self.net = _mlp(self.widths, config.negative_slope, config.dropout, batchnorm=False)
+        self.widths = decoder_widths(config.num_leds, config.latent_dim, config.architecture)
+        if config.architecture == "compact":  # the trunk ends in the linear bottleneck, then the bases
+            self.net = nn.Sequential(*_mlp(self.widths[:-1], config.negative_slope, config.dropout, batchnorm=False),
+                                     nn.Linear(self.widths[-2], self.widths[-1]))
+        else:
+            self.net = _mlp(self.widths, config.negative_slope, config.dropout, batchnorm=False)
         _xavier_(self, config.negative_slope)
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:

@@ -98,6 +98,7 @@ class TrainConfig:
     patterns_per_view: int = 32   # released: 32 signed patterns = 64 frames
     dropout: float = 0.3          # paper §6: 30%
     measurement_noise: float = 0.05  # paper §6: 5% multiplicative noise
+    architecture: str = "paper"   # "paper" (released) or "compact" (shippable; reconstruction.network)
     # training data distributions (reconstruction.data.SamplingConfig defaults, sources given there)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
 
@@ -116,7 +117,8 @@ class TrainConfig:
 
     def network_config(self, num_leds: int) -> NetworkConfig:
         return NetworkConfig(num_leds=int(num_leds), patterns_per_view=self.patterns_per_view,
-                             dropout=self.dropout, measurement_noise=self.measurement_noise)
+                             dropout=self.dropout, measurement_noise=self.measurement_noise,
+                             architecture=self.architecture)
 
     def to_json(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self)))
@@ -230,7 +232,8 @@ def load_run_model(run_dir, device="cpu") -> AcquisitionNet:
 
 
 def _check_resumable(meta: dict, config: TrainConfig, rig_digest: str, run_dir: Path) -> None:
-    old = {k: v for k, v in meta["config"].items() if k not in RESUMABLE_FIELDS}
+    # a field the checkpoint lacks was added after it was written: it ran with that field's default
+    old = {k: v for k, v in {**TrainConfig().to_json(), **meta["config"]}.items() if k not in RESUMABLE_FIELDS}
     new = {k: v for k, v in config.to_json().items() if k not in RESUMABLE_FIELDS}
     if old != new:
         diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
