@@ -57,15 +57,15 @@ def cmd_network(args) -> int:
     import twin
 
     from .pretrained import score_network, ship_network
-    from .train import TrainConfig, load_run_model
+    from .train import CHECKPOINT_JSON, TrainConfig, load_run_model
 
     if args.network_command == "ship":
         info = ship_network(args.run, args.output, args.device, args.commit)
         print(json.dumps({k: info[k] for k in ("rig", "architecture", "num_parameters", "heldout_loss", "scores")},
                          indent=2))
         return 0
-    config = TrainConfig.from_json(json.loads((Path(args.run) / "metrics.json").read_text())["config"])
-    model = load_run_model(args.run, args.device)
+    model = load_run_model(args.run, args.device)  # first: a folder that is no run says so
+    config = TrainConfig.from_json(json.loads((Path(args.run) / CHECKPOINT_JSON).read_text())["config"])
     print(json.dumps(score_network(model, twin.load_rig(config.rig), config, torch.device(args.device)), indent=2))
     return 0
 

@@ -30,7 +30,7 @@ from twin.atomic import write_bytes_atomic
 
 from .data import heldout_set
 from .network import AcquisitionNet, log_to_lumitexel, lumitexel_loss
-from .train import TrainConfig, _evaluate, export_patterns, load_run_model
+from .train import TrainConfig, _evaluate, export_patterns, heldout_losses, load_run_model
 
 PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
 SHIP_LIMIT = 16 * 2 ** 20
@@ -93,12 +93,6 @@ def write_default_patterns(rig_name: str) -> None:
     write_bytes_atomic(index_path, tomli_w.dumps(index).encode())
 
 
-def _per_texel_loss(model, views, target) -> torch.Tensor:
-    model.eval()
-    with torch.no_grad():
-        return lumitexel_loss(model(views)["log_lumitexel"], target, reduction="none")
-
-
 def score_network(model: AcquisitionNet, rig, config: TrainConfig, device="cpu") -> dict:
     """Held-out figures of a network (eval mode) on its run's seeded held-out sets:
     heldout_loss   Eq. 3, the mean over the held-out set (as training reports it);
@@ -111,15 +105,14 @@ def score_network(model: AcquisitionNet, rig, config: TrainConfig, device="cpu")
                    peak_energy, the median |sum m_hat / sum m - 1| there (the peak's light, which fine-tuning
                    and the fit lean on), with the whole lumitexels' Eq. 3 for scale."""
     held = heldout_set(rig, config.sampling, config.heldout_size, config.seed, device)
-    per = _per_texel_loss(model, held["views"], held["target"])
+    per = heldout_losses(model, held)
     logs = torch.log1p(held["target"].double())
     blind = float(((logs - logs.mean(dim=0)) ** 2).sum(dim=1).mean())
     lo = config.sampling.alpha_range[0]
     narrow = heldout_set(rig, dataclasses.replace(config.sampling, alpha_range=(lo, max(lo, NARROW_ALPHA))),
                          config.heldout_size, config.seed, device)
     m = narrow["target"].double()
-    with torch.no_grad():
-        model.eval()
+    with torch.no_grad():  # heldout_losses left the model in eval mode
         m_hat = log_to_lumitexel(model(narrow["views"])["log_lumitexel"]).double()
     peak = m >= 0.5 * m.max(dim=1, keepdim=True).values
     d2 = (torch.log1p(m_hat) - torch.log1p(m)) ** 2
@@ -149,10 +142,13 @@ def ship_network(run_dir, dest=None, device="cpu", commit: str = "") -> dict:
     import twin
 
     run_dir = Path(run_dir)
+    tensors = _as_shipped(load_run_model(run_dir).state_dict())  # first: a folder that is no run says so
+    if not (run_dir / "metrics.json").is_file():
+        raise ValueError(f"{run_dir}: no metrics.json (a run killed before its call ended); run the same "
+                         "`hemicube train` command again to finish it")
     summary = json.loads((run_dir / "metrics.json").read_text())
     config = TrainConfig.from_json(summary["config"])
     rig = twin.load_rig(config.rig)
-    tensors = _as_shipped(load_run_model(run_dir).state_dict())
     blob = save(tensors)
     if len(blob) > SHIP_LIMIT:
         raise ValueError(f"{run_dir}: its network is {len(blob) / 2 ** 20:.1f} MiB as it would ship, above the "

@@ -313,11 +313,16 @@ def _plot_loss(rows: list[dict], path: Path) -> None:
 # ------------------------------------------------------------------------------------------ training
 
 
-def _evaluate(model, held) -> float:
+def heldout_losses(model, held) -> torch.Tensor:
+    """Eq. 3 of each held-out texel, in eval mode (no dropout, BatchNorm's running statistics); the model is
+    left in eval mode."""
     model.eval()
     with torch.no_grad():
-        out = model(held["views"])
-        loss = float(lumitexel_loss(out["log_lumitexel"], held["target"]))
+        return lumitexel_loss(model(held["views"])["log_lumitexel"], held["target"], reduction="none")
+
+
+def _evaluate(model, held) -> float:
+    loss = float(heldout_losses(model, held).mean())
     model.train()
     return loss
 

@@ -1,8 +1,11 @@
-"""The pretrained mini-rig network that ships in the package."""
+"""The pretrained networks that ship in the package (mini, and the compact paper-rig one)."""
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
+import torch
 
 import twin
 from reconstruction.pretrained import heldout_loss, load_pretrained, pretrained_info, pretrained_patterns
@@ -75,3 +78,34 @@ def test_no_model_for_other_rigs(tmp_path):
         load_pretrained("nosuch")
     model, info = load_pretrained("mini")
     assert not model.training and info["num_upper_leds"] == 396
+
+
+def test_compact_architecture_fits_the_ship_limit_and_ships_as_scored(tmp_path):
+    """The compact paper-rig network is within SHIP_LIMIT as float16 matrices; `hemicube network ship` of a tiny
+    mini-rig compact run writes float16 matrices whose re-scoring gives model.json's loss; a folder that is no
+    run gets a one-line error and no output folder."""
+    import hemicube.cli
+    from reconstruction.network import AcquisitionNet, NetworkConfig, decoder_widths
+    from reconstruction.pretrained import SHIP_LIMIT, score_network
+    from reconstruction.train import TrainConfig, load_run_model
+
+    assert decoder_widths(12288, 56, "compact") == [56, 128, 256, 256, 512, 1024, 256, 12288]
+    assert sum(p.numel() for p in AcquisitionNet(NetworkConfig(12288, architecture="compact")).parameters()) \
+        * 2 < SHIP_LIMIT
+    run, dest = tmp_path / "run", tmp_path / "ship"
+    assert hemicube.cli.main(["train", "--rig", "mini", "--architecture", "compact", "--steps", "4",
+                              "--eval-every", "2", "--no-progress", "-o", str(run)]) == 0
+    assert hemicube.cli.main(["network", "ship", str(run), "-o", str(dest)]) == 0
+    from safetensors.torch import load_file
+
+    tensors = load_file(str(dest / "model.safetensors"))
+    floats = [t for t in tensors.values() if t.dtype.is_floating_point]  # (BatchNorm's step counts are integers)
+    assert floats and all((t.dtype == torch.float16) == (t.ndim >= 2) for t in floats)
+    info = json.loads((dest / "model.json").read_text())
+    model = AcquisitionNet(TrainConfig.from_json(info["config"]).network_config(396))
+    model.load_state_dict(tensors)
+    again = score_network(model, twin.load_rig("mini"), TrainConfig.from_json(info["config"]))
+    assert again["heldout_loss"] == pytest.approx(info["heldout_loss"], rel=1e-6)
+    assert load_run_model(run).decoder.widths[-2] == 64  # the bottleneck, scaled and at least 64
+    assert hemicube.cli.main(["network", "ship", str(tmp_path / "none"), "-o", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()
