@@ -1,6 +1,7 @@
 """`hemicube calibrate` (issue #16): calibration captures in the twin, the procedures of this package on their
 photos, a calibrated rig folder and a report scored against the twin's truth. Built so far: the cameras
-(`calibration.cameras`) and the vignetting / flat field (`calibration.vignetting`)."""
+(`calibration.cameras`), the vignetting / flat field (`calibration.vignetting`) and the upper LEDs' positions,
+normals, profiles and intensities (`calibration.leds`)."""
 from __future__ import annotations
 
 import json
@@ -78,15 +79,102 @@ def calibrate_vignetting(nominal, truth, frames: int, seed: int, progress: bool 
     return replace(nominal, cameras=cams, flat_fields=maps), report
 
 
+LED_GOALS = {"position_mm_median": 0.5, "profile_shape_pct_median": 2.0}  # issue #16: 0.5 mm, Psi within 2%
+PLATE_HEIGHTS_MM = (0.0, 40.0)  # the diffuse plate on the sample plane, then on 40 mm spacers
+LED_BATCH = 64  # LEDs rendered at once (the radiance of a batch: 64 x H x W x 3 float64)
+
+
+def _binned(rig, b: int):
+    """The rig with its cameras binned b x b (Camera.resized; the flat-field maps averaged over the bins)."""
+    import numpy as np
+
+    if b == 1:
+        return rig
+
+    def down(m, cam):
+        H, W = (cam.height // b) * b, (cam.width // b) * b
+        return np.asarray(m)[:H, :W].reshape(H // b, b, W // b, b).mean(axis=(1, 3)).astype(np.float32)
+
+    cams = {n: c.resized(1.0 / b) for n, c in rig.cameras.items()}
+    return replace(rig, cameras=cams, flat_fields={n: down(m, rig.cameras[n]) for n, m in rig.flat_fields.items()})
+
+
+def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int = 1, binning: int = 1,
+                              progress: bool = True) -> tuple:
+    """Photograph a diffuse plate (twin.targets.diffuse) with both cameras of the TRUE rig, at the two heights
+    PLATE_HEIGHTS_MM, each upper LED alone (every `step`-th: a quicker run; the others keep their nominal
+    values), `frames` frames per photo, with the cameras binned `binning` x `binning` (the LEDs' light over the
+    plate is smooth; the paper rig's 6 MP photos need not be read whole), and calibrate the LEDs from those photos
+    alone (calibration.leds; the cameras, their flat fields and colour matrices as the nominal rig has them:
+    calibrated beforehand). Returns (the nominal rig with the calibrated LEDs, a report scored against the
+    truth, with the nominal rig's own errors beside it)."""
+    import numpy as np
+
+    from twin.camera.hdr import still_photo
+    from twin.targets.diffuse import DiffusePlate
+
+    from .leds import calibrate_leds, plate_samples, score_leds
+
+    upper = np.flatnonzero(~truth.is_bottom)[::step]
+    samples = {int(led): [] for led in upper}
+    shot = 0
+    seen, known = _binned(truth, binning), _binned(nominal, binning)
+    for cam_name in truth.cameras:
+        cam, cal_cam = seen.camera(cam_name), known.camera(cam_name)
+        for h in PLATE_HEIGHTS_MM:
+            plate = DiffusePlate(height_mm=h)
+            for i in range(0, len(upper), LED_BATCH):
+                batch = upper[i:i + LED_BATCH]
+                for led, rad in zip(batch, plate.radiance(seen, cam_name, batch)):
+                    if not rad.max() > 0:
+                        continue  # the LED does not reach the plate at this height (a side LED below it)
+                    photo, sat = still_photo(rad, cam, seed=seed, frames=frames, first_frame=shot * frames,
+                                             camera_key=cam_name, flat_field=seen.flat_fields.get(cam_name))
+                    shot += 1
+                    samples[int(led)].append(plate_samples(photo, sat, cal_cam, known, plate,
+                                                           label=f"{cam_name}, plate at {h:g} mm, LED {led}"))
+            if progress:
+                print(f"[calibrate] {cam_name}: plate at {h:g} mm, {len(upper)} LEDs", file=sys.stderr, flush=True)
+    fit = calibrate_leds(nominal, samples, DiffusePlate().albedo)
+    rig = fit.apply(nominal)
+    s = score_leds(rig, truth, fit.index)
+    goals = {"position_mm_median": s["position_mm"]["median"] <= LED_GOALS["position_mm_median"],
+             "profile_shape_pct_median": s["profile_shape_pct"]["median"] <= LED_GOALS["profile_shape_pct_median"]}
+    report = {"photos": shot, "frames_per_photo": frames, "led_step": step, "binning": binning,
+              "camera_pixels": {n: [c.width, c.height] for n, c in seen.cameras.items()}, "plate_heights_mm": list(PLATE_HEIGHTS_MM),
+              "calibrated": int(fit.index.size), "skipped": fit.skipped, "fit_rms_log": float(np.median(fit.rms_log)),
+              **s, "nominal_error": score_leds(nominal, truth, fit.index), "goals": goals,
+              "passed": all(goals.values())}
+    return rig, {"leds": report}
+
+
 def cmd_calibrate(args) -> int:
     import twin
-    from twin.rig.perturb import perturb_cameras, perturb_vignetting
+    from twin.rig.perturb import perturb_cameras, perturb_leds, perturb_vignetting
 
     from .vignetting import FlatFieldError
 
     nominal = twin.load_rig(args.rig)
+    if args.frames is None:
+        args.frames = 16 if args.what == "leds" else 32
     progress = not args.no_progress
-    if args.what == "vignetting":
+    if args.what == "leds":
+        from .leds import LEDCalibrationError
+
+        if min(args.frames, args.led_step, args.binning) < 1:
+            raise ValueError(f"--frames {args.frames}, --led-step {args.led_step}, --binning {args.binning}: each "
+                             "must be at least 1")
+        perturb, errors = perturb_leds, LEDCalibrationError
+        run = lambda truth: calibrate_leds_from_plate(nominal, truth, args.frames, args.seed, args.led_step,  # noqa: E731
+                                                      args.binning, progress)
+        doc = {"frames": args.frames, "led_step": args.led_step, "binning": args.binning, "goals": LED_GOALS}
+
+        def line(r):
+            p, f, n = r["position_mm"], r["profile_shape_pct"], r["nominal_error"]["position_mm"]
+            return (f"{r['calibrated']} LEDs: position median {p['median']:.2f} mm (p90 {p['p90']:.2f}, nominal "
+                    f"{n['median']:.2f})  normal {r['normal_deg']['median']:.2f} deg  profile {f['median']:.2f}% "
+                    f"(p90 {f['p90']:.2f}%)  emission {r['emission_pct']['median']:.2f}%")
+    elif args.what == "vignetting":
         if args.frames < 1:
             raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
         perturb, errors = perturb_vignetting, FlatFieldError
@@ -135,16 +223,20 @@ def _write(output: Path, rig, truth, doc: dict) -> None:
 
 def register(sub) -> None:
     s = sub.add_parser("calibrate", help="calibrate from photographs of targets in the twin; write a calibrated rig "
-                       "folder and a report scored against the truth (built: cameras, vignetting)")
-    s.add_argument("what", choices=("cameras", "vignetting"), help="what to calibrate")
+                       "folder and a report scored against the truth (built: cameras, vignetting, LEDs)")
+    s.add_argument("what", choices=("cameras", "vignetting", "leds"), help="what to calibrate")
     s.add_argument("--rig", default="paper", help="built-in rig or rig folder: the nominal values (default: %(default)s)")
     s.add_argument("--perturb", type=int, metavar="SEED", help="the true device is the nominal rig with seeded "
                    "errors (twin.rig.perturb); default: the nominal rig itself")
     s.add_argument("--views", type=int, default=8, help="board poses per camera (default: %(default)s)")
     s.add_argument("--seed", type=int, default=0, help="seed of the board poses and the photos' noise (default: "
                    "%(default)s)")
-    s.add_argument("--frames", type=int, default=32, help="vignetting: frames averaged per flat-field photo "
-                   "(default: %(default)s)")
+    s.add_argument("--frames", type=int, default=None, help="frames averaged per photo (vignetting: flat-field "
+                   "photos, default 32; leds: plate photos, default 16)")
+    s.add_argument("--led-step", type=int, default=1, help="leds: calibrate every N-th upper LED, the others keep "
+                   "their nominal values (default: %(default)s, all)")
+    s.add_argument("--binning", type=int, default=1, help="leds: bin the cameras' pixels B x B for the plate photos "
+                   "(default: %(default)s; the paper rig's 2664 x 2304 photos at 12 give 222 x 192)")
     s.add_argument("-o", "--output", required=True, help="folder for rig/, truth/ and report.json (replaced)")
     s.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
     s.set_defaults(func=cmd_calibrate)

@@ -129,8 +129,9 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     """Run the plan into `output` (resuming a killed run there). Returns the folder. `devices` are the
     hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
     (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
-    calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must have
-    `rig`'s geometry (Rig.geometry_digest): a calibration of how the cameras record light. Everything that can
+    calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must be
+    `rig`'s device (Rig.layout_digest): differ only in how the cameras record light and in the LEDs' positions,
+    normals, profiles and intensities. Everything that can
     be checked, the devices included, is checked before the folder is made; a folder this call made is removed
     again when it fails before its first photo."""
     from twin.materials.samples import load_sample
@@ -138,9 +139,10 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
 
     device = check_device(device)
     devices = {k: v for k, v in (devices or {}).items() if v is not None}
-    if truth is not None and truth.geometry_digest() != rig.geometry_digest():
-        raise CaptureError(f"--truth {truth.name!r} differs from rig {rig.name!r} in more than how its cameras "
-                           "record light (LEDs, sample plane or camera geometry): it is not a calibration of it")
+    if truth is not None and truth.layout_digest() != rig.layout_digest():
+        raise CaptureError(f"--truth {truth.name!r} differs from rig {rig.name!r} in more than a calibration "
+                           "measures (how the cameras record light; the LEDs' positions, normals, profiles and "
+                           "intensities; the LED layout, sample plane or camera geometry differ): it is not a calibration of it")
     # the twin renders (and so knows the ground truth) unless real cameras take the photos
     maps = load_sample(sample, resolution=resolution) if devices.get("cameras") != "basler" else None
     header, patterns, plan = capture_header(rig, sample, seed=seed, backend=backend, resolution=resolution,

@@ -287,6 +287,15 @@ class Rig:
                         flat_fields={})
         return plain.digest()
 
+    def layout_digest(self) -> str:
+        """sha256 of the rig without what a lab calibrates of the same device beyond the cameras' geometry: how
+        the cameras record light (geometry_digest) and the LEDs' positions, normals, profiles and intensities
+        (calibration.leds). Two rigs with the same layout digest are one device, calibrated differently: the
+        same LEDs on the same boards, the same sample plane, frame and camera poses and lenses."""
+        plain = replace(self, cameras={n: replace(c, sensor=SensorParams()) for n, c in self.cameras.items()},
+                        flat_fields={})
+        return hashlib.sha256(canonical_bytes(plain, ("positions", "normals", "profile", "intensity"))).hexdigest()
+
     def summary(self) -> dict:
         """What `hemicube rig info` prints."""
         per_board = np.bincount(self.leds.board, minlength=len(self.boards))
@@ -441,10 +450,11 @@ def _camera_dict(c: Camera) -> dict:
             "R": c.R.tolist(), "t": c.t.tolist(), "assumed": c.assumed, "note": c.note, "sensor": sensor}
 
 
-def canonical_bytes(rig: Rig) -> bytes:
-    """A canonical serialisation for hashing: the TOML text and every array's dtype, shape and bytes."""
+def canonical_bytes(rig: Rig, without_leds: tuple = ()) -> bytes:
+    """A canonical serialisation for hashing: the TOML text and every array's dtype, shape and bytes (but the
+    LED arrays named in `without_leds`)."""
     parts = [tomli_w.dumps(rig_to_toml_dict(rig)).encode()]
-    arrays = {f"leds.{k}": getattr(rig.leds, k) for k in LEDs.ARRAYS}
+    arrays = {f"leds.{k}": getattr(rig.leds, k) for k in LEDs.ARRAYS if k not in without_leds}
     if rig.frame is not None:
         arrays |= {"frame.marker_ids": rig.frame.marker_ids, "frame.marker_corners": rig.frame.marker_corners}
     arrays |= {f"flat_field.{k}": v for k, v in rig.flat_fields.items()}  # none: the digest of a rig before them

@@ -16,7 +16,13 @@ model (1 + a r^2 + b r^4 + c r^6), so that a flat-field calibration has more to 
 - dust on the sensor window: 2-6 soft shadows, Gaussian, sigma U(1, 2.5)% of the width, U(1, 4)% deep.
 The rig keeps the radial part in each camera's `vignetting` and the other two as its per-pixel map
 (`Rig.flat_fields`), so that a capture with it renders the whole falloff.
-LEDs, profiles and colour: not yet.
+LEDs (`perturb_leds`), the upper LEDs only (the bottom LEDs light the sample through the acrylic and are not
+calibrated from above): positions N(0, 3 mm) per axis (the issue's figure: a hand-assembled board's LEDs, each
+placed on its own; redrawn where two would overlap); each board turned by N(0, 0.5 deg) about each axis about its centre, moving its LEDs'
+normals, plus a N(0, 1 deg) tilt of every LED (soldered crooked); the angular profile cos^p with p = the
+nominal p x U(0.8, 1.2) per board (the issue's +-20%) x N(1, 2%) per LED, so that the truth is richer than a
+profile fitted per board; RGB intensity x U(0.9, 1.1) per LED and channel (the issue's +-10%). The rig must use
+the "cosine" profile family. Colour: not yet.
 """
 from __future__ import annotations
 
@@ -26,7 +32,7 @@ import numpy as np
 
 from .camera import orthonormalise
 
-__all__ = ["perturb_cameras", "perturb_vignetting"]
+__all__ = ["perturb_cameras", "perturb_leds", "perturb_vignetting"]
 
 
 def _rotation(v: np.ndarray) -> np.ndarray:
@@ -80,3 +86,46 @@ def perturb_vignetting(rig, seed: int):
         extra[name] = np.clip(mech, 0.5, 1.0) * dust
     return replace(rig, cameras=cams, flat_fields=extra)
 
+
+
+LED_SIZE_MM = 4.0  # an LED package: moved LEDs keep at least this far apart
+
+
+def _apart(p: np.ndarray, rng) -> np.ndarray:
+    """(n, 3) offsets N(0, 3 mm) per axis for LEDs at p, redrawn (from rng, so still seeded) for any LED that
+    would come within LED_SIZE_MM of another: two packages cannot overlap (on the paper rig's 10 mm pitch
+    independent 3 mm offsets bring a few pairs within 1 mm, which the rig rightly refuses)."""
+    from scipy.spatial import cKDTree
+
+    d = rng.normal(0.0, 3.0, p.shape)
+    for _ in range(100):
+        close = cKDTree(p + d).query_pairs(LED_SIZE_MM, output_type="ndarray")
+        if not len(close):
+            return d
+        redo = np.unique(close[:, 1])
+        d[redo] = rng.normal(0.0, 3.0, (redo.size, 3))
+    raise RuntimeError("could not place the perturbed LEDs apart")
+
+
+def perturb_leds(rig, seed: int):
+    """The rig with its upper LEDs' positions, normals, profiles and intensities drawn as the module docstring
+    says, from `seed` alone."""
+    if rig.led_profile != "cosine":
+        raise ValueError(f"perturb_leds draws cosine-profile exponents; rig {rig.name!r} uses {rig.led_profile!r}")
+    rng = np.random.default_rng([int(seed), 16])
+    leds = rig.leds
+    pos, nrm = leds.positions.copy(), leds.normals.copy()
+    prof, inten = leds.profile.copy(), leds.intensity.copy()
+    for b in np.unique(leds.board[~leds.is_bottom]):
+        sel = np.flatnonzero((leds.board == b) & ~leds.is_bottom)
+        R = _rotation(np.radians(rng.normal(0.0, 0.5, 3)))
+        c = pos[sel].mean(axis=0)
+        pos[sel] = (pos[sel] - c) @ R.T + c
+        pos[sel] += _apart(pos[sel], rng)
+        tilt = np.stack([_rotation(np.radians(rng.normal(0.0, 1.0, 3))) for _ in sel])
+        n = np.einsum("kij,kj->ki", tilt, nrm[sel] @ R.T)
+        nrm[sel] = n / np.linalg.norm(n, axis=1, keepdims=True)
+        prof[sel, 0] *= rng.uniform(0.8, 1.2) * rng.normal(1.0, 0.02, sel.size)
+        inten[sel] *= rng.uniform(0.9, 1.1, (sel.size, 3))
+    new = replace(leds, positions=pos, normals=nrm, profile=prof, intensity=inten)
+    return replace(rig, leds=new, name=rig.name)
