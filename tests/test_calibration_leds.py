@@ -123,9 +123,9 @@ def test_an_led_calibration_is_the_same_device():
     tilted, re-profiled, re-weighted) is the same device; one whose camera moved, or with other LEDs, is not."""
     from twin.rig.perturb import perturb_cameras
 
-    nominal = twin.load_rig("mini")
+    nominal = twin.load_rig("paper")
     truth = perturb_leds(nominal, 3)
     assert truth.geometry_digest() != nominal.geometry_digest()
     assert truth.layout_digest() == nominal.layout_digest()
     assert perturb_cameras(nominal, 3).layout_digest() != nominal.layout_digest()
-    assert twin.load_rig("paper").layout_digest() != nominal.layout_digest()
+    assert twin.load_rig("mini").layout_digest() != nominal.layout_digest()
