@@ -107,6 +107,10 @@ __all__ = ["FitConfig", "FitResult", "fit_ggx", "fit_method", "to_maps", "FITTIN
 LOSSES = ("log1p", "mse")
 METHODS = ("direct", "neural")  # FITTING_METHODS below: one function each
 GEOMETRY_SIZE = 5  # [u, v, theta, a_x, a_y]
+# texel-LED pairs evaluated at once when FitConfig.batch is None (ours, memory): every texel of a mini-rig grid up
+# to 290^2 in one range; 2,730 texels on the paper rig, where a 256^2 grid in one range asked an H100 for 12 GB
+# per forward model (and the Levenberg-Marquardt Jacobian evaluates six), and 16,384 texels ran out of its 80 GB
+AUTO_CHUNK_PAIRS = 2 ** 25
 HEADS = (("normal", 2), ("theta", 1), ("alpha", 2), ("rho_d", 3), ("rho_s", 3))  # reference §5's 5 heads
 
 
@@ -120,7 +124,7 @@ class FitConfig:
     # yet converged); neural: Adam steps of `batch` texels (the reference runs 120,000 steps of 128 texels).
     iterations: int | None = None  # None: 20 (direct), 600 (neural)
     lr: float | None = None  # the neural method's Adam (None: 1e-3, reference §5); the direct method has none
-    batch: int | None = None  # direct: texels per chunk (None: all); neural: texels per step (None: 256)
+    batch: int | None = None  # direct: texels per chunk (None: AUTO_CHUNK_PAIRS / LEDs); neural: per step (None: 256)
     # the widest of the reference's per-class ranges (§5 OBJECT_CONFIG: 0.006 + axay_range, 1.0 for wood and
     # woven; ps_range 20 for paper), one setting for every sample: issue #14's suite reaches alpha 0.6 and rho_s
     # 18, which the default-class ranges (0.503, 10) clip
@@ -664,8 +668,9 @@ def _initial(prob: _Problem):
 
 # --- the methods -----------------------------------------------------------------------------------------
 def _chunks(prob: _Problem, size: int | None):
-    """Contiguous texel index ranges of at most `size` (None: one range)."""
-    return torch.arange(prob.n, device=prob.pos.device).split(size or prob.n)
+    """Contiguous texel index ranges of at most `size` (None: AUTO_CHUNK_PAIRS texel-LED pairs a range)."""
+    auto = max(1, AUTO_CHUNK_PAIRS // max(int(prob.target.shape[1]), 1))
+    return torch.arange(prob.n, device=prob.pos.device).split(size or min(prob.n, auto))
 
 
 def _result(prob: _Problem, geom: dict, rho_d, rho_s, history, t_start, info) -> FitResult:
@@ -870,35 +875,44 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     lo, hi = (math.log(v) for v in c.alpha_range)
 
     def data(x, jac: bool):
-        out = []
+        """Per chunk of texels (only the 5 x 5 normal equations are kept, not the Jacobians: the paper rig's
+        residuals are 3 x 12,288 + photos per texel): each texel's sum of squared residuals, their total, the
+        Gauss-Newton blocks J^T J and gradients J^T r (None without jac), and the residuals per texel."""
+        rows, total, Hs, gs, count = [], 0.0, [], [], 1
         with torch.no_grad():
             for idx in _chunks(prob, c.batch):
                 part = prob.part(idx)
                 xi = x[idx].float()
                 r = _residuals(part, _from_tensor(xi))
-                out.append((r, _jacobian(part, xi, r, _from_tensor) if jac else None))
-        r = torch.cat([o[0] for o in out]).double()
-        return r, (torch.cat([o[1] for o in out]).double() if jac else None)
+                rd = r.double()
+                rows.append(rd.square().sum(1))
+                total += float(rd.square().sum())
+                count = r.shape[1]
+                if jac:
+                    J = _jacobian(part, xi, r, _from_tensor).double()
+                    Hs.append(J.transpose(1, 2) @ J)
+                    gs.append((J.transpose(1, 2) @ rd[..., None])[..., 0])
+        return (torch.cat(rows), total, torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None, count)
 
     def prior(x):
         a = x[:, prior_dims]
         return float((a * _laplacian(a, weights, (R, C))).sum())  # sum_{i~j} w_ij |a_i - a_j|^2
 
-    r, J = data(x, True)
-    sigma2 = float((r.square().sum(1) / max(r.shape[1] - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
-    F = float(r.square().sum()) / sigma2 + prior(x)
+    rows, total, JJ, Jr, count = data(x, True)
+    sigma2 = float((rows / max(count - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
+    F = total / sigma2 + prior(x)
     F0, mu, kept, cg = F, c.lm_damping, 0, 0
     for _ in range(c.steps):
-        H = J.transpose(1, 2) @ J / sigma2
-        g = (J.transpose(1, 2) @ r[..., None])[..., 0] / sigma2
+        H = JJ / sigma2
+        g = Jr / sigma2
         g[:, prior_dims] += _laplacian(x[:, prior_dims], weights, (R, C))
         d = torch.diagonal(H, dim1=1, dim2=2)
         H_damped = H + torch.diag_embed(mu * (d + 1e-6 * d.sum(1, keepdim=True)) + 1e-12)
         step, it = _block_pcg(H_damped, weights, (R, C), -g, prior_dims, 10 * (R + C))
         cg += it
         xn = x + step
-        r_n, _ = data(xn, False)
-        Fn = float(r_n.square().sum()) / sigma2 + prior(xn)
+        _, total_n, _, _, _ = data(xn, False)
+        Fn = total_n / sigma2 + prior(xn)
         if not math.isfinite(Fn) or Fn >= F:
             mu *= 4
             if mu > 1e10:
@@ -907,7 +921,7 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
         if gain < c.tolerance:
             break
-        r, J = data(x, True)
+        rows, total, JJ, Jr, count = data(x, True)
     out = _from_tensor(x.float())
     out[:, 3:5] = out[:, 3:5].clamp(lo, hi)
     return out, {"joint_steps": kept, "joint_cg_iterations": cg, "joint_objective": [F0, F],

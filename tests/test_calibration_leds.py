@@ -20,7 +20,7 @@ from twin.targets.diffuse import DiffusePlate
 def calibrated():
     nominal = twin.load_rig("mini")
     truth = perturb_leds(nominal, 11)  # held back: docs/calibration.md's figures are for perturbation seed 3
-    rig, report = calibrate_leds_from_plate(nominal, truth, frames=16, seed=2, step=12, progress=False)
+    rig, report = calibrate_leds_from_plate(nominal, truth, frames=16, seed=2, step=18, progress=False)
     return nominal, truth, rig, report["leds"]
 
 
