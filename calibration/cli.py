@@ -113,7 +113,7 @@ def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int 
     from twin.camera.hdr import still_photo
     from twin.targets.diffuse import DiffusePlate
 
-    from .leds import calibrate_leds, plate_samples, score_leds
+    from .leds import calibrate_leds, plate_samples, plate_view, score_leds
 
     upper = np.flatnonzero(~truth.is_bottom)[::step]
     samples = {int(led): [] for led in upper}
@@ -123,6 +123,7 @@ def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int 
         cam, cal_cam = seen.camera(cam_name), known.camera(cam_name)
         for h in PLATE_HEIGHTS_MM:
             plate = DiffusePlate(height_mm=h)
+            view = plate_view(cal_cam, known, plate)  # the same for every photo of this plate by this camera
             for i in range(0, len(upper), LED_BATCH):
                 batch = upper[i:i + LED_BATCH]
                 for led, rad in zip(batch, plate.radiance(seen, cam_name, batch)):
@@ -131,11 +132,11 @@ def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int 
                     photo, sat = still_photo(rad, cam, seed=seed, frames=frames, first_frame=shot * frames,
                                              camera_key=cam_name, flat_field=seen.flat_fields.get(cam_name))
                     shot += 1
-                    samples[int(led)].append(plate_samples(photo, sat, cal_cam, known, plate,
+                    samples[int(led)].append(plate_samples(photo, sat, cal_cam, known, plate, view=view,
                                                            label=f"{cam_name}, plate at {h:g} mm, LED {led}"))
             if progress:
                 print(f"[calibrate] {cam_name}: plate at {h:g} mm, {len(upper)} LEDs", file=sys.stderr, flush=True)
-    fit = calibrate_leds(nominal, samples, DiffusePlate().albedo)
+    fit = calibrate_leds(nominal, samples, plate.albedo)
     rig = fit.apply(nominal)
     s = score_leds(rig, truth, fit.index)
     goals = {"position_mm_median": s["position_mm"]["median"] <= LED_GOALS["position_mm_median"],

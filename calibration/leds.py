@@ -4,7 +4,7 @@ plate (twin.targets.diffuse.DiffusePlate) lit by one LED at a time.
     samples = plate_samples(photo, saturated, camera, rig, plate)          # per photo: plate points, radiance
     fit = calibrate_leds(rig, {led: [samples at height 0, samples at height h]})
     rig_calibrated = fit.apply(rig)
-    score_leds(rig_calibrated, truth, fitted=fit.leds)                        # against the twin's truth
+    score_leds(rig_calibrated, truth, fit.index)                              # against the twin's truth
 
 Physics (paper Eq. 1 with a Lambertian plate of albedo rho): the LED-RGB radiance at plate point x under LED l,
     L_c(x) = I_c (cos theta_e)^p (rho / pi) cos theta_i / r^2,
@@ -37,7 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["LEDCalibrationError", "LEDFit", "plate_samples", "calibrate_leds", "score_leds", "MIN_BLOCKS"]
+__all__ = ["LEDCalibrationError", "LEDFit", "PlateView", "plate_view", "plate_samples", "calibrate_leds", "score_leds", "MIN_BLOCKS"]
 
 MIN_BLOCKS = 40  # usable blocks over both heights below which an LED is not calibrated
 DARK_FRACTION = 0.05  # blocks below this fraction of the photo's brightest block are dropped
@@ -77,12 +77,51 @@ class LEDFit:
         return replace(rig, leds=replace(leds, positions=pos, normals=nrm, profile=prof, intensity=inten))
 
 
-def plate_samples(photo, saturated, camera, rig, plate, *, block: int = 4, label: str = "photo", calibration=None):
-    """(X (M, B, 3) mm, L (M, 3)) of one HDR photo (H, W, 3) of `plate` by `camera` (step 1): the plate points
-    of the B = block^2 pixels of each block wholly on the plate, and the block's mean LED-RGB radiance. `saturated` (H, W) marks photosites saturated in any frame."""
+@dataclass
+class PlateView:
+    """What one camera sees of one plate, the same for every photo of it (`plate_view`): the camera, the block
+    size, which blocks lie wholly on the plate (Hb, Wb), the plate points of their pixels (M, B, 3) and the
+    camera's calibration (flat field (H, W), colour matrix)."""
+
+    camera: object
+    block: int
+    on: np.ndarray
+    points: np.ndarray
+    calibration: tuple
+
+
+def plate_view(camera, rig, plate, block: int = 4) -> PlateView:
+    """The photo-independent part of step 1 for `camera` and `plate` (the rig's calibration of the camera)."""
     from scipy import ndimage
 
-    from twin.camera.correction import apply_colour_matrix, colour_matrix, flat_field
+    from twin.camera.correction import colour_matrix, flat_field
+
+    H, W = (camera.height // block) * block, (camera.width // block) * block
+    v, u = np.mgrid[0:H, 0:W]
+    uv = np.stack([u, v], -1).astype(np.float64)
+    _, on = plate.points(rig, camera, uv.reshape(-1, 2))
+    # 2 px inside the plate's edge: the bilinear demosaic (twin.camera.bayer) mixes a pixel's neighbours, and
+    # next to the edge those are off the plate (measured: the R and B of the edge blocks off by up to 50%)
+    on = _blocks(ndimage.binary_erosion(on.reshape(H, W), iterations=2), block).all(axis=2)
+    X, _ = plate.points(rig, camera, _blocks(uv, block)[on].reshape(-1, 2))
+    return PlateView(camera, block, on, X.reshape(int(on.sum()), block * block, 3),
+                     (flat_field(camera, rig.flat_fields.get(camera.name)), colour_matrix(camera)))
+
+
+def _blocks(a: np.ndarray, block: int) -> np.ndarray:
+    """(Hb, Wb, block^2, ...) the block x block tiles of a (H, W, ...), H and W multiples of block."""
+    H, W = a.shape[:2]
+    return a.reshape(H // block, block, W // block, block, *a.shape[2:]).swapaxes(1, 2).reshape(
+        H // block, W // block, block * block, *a.shape[2:])
+
+
+def plate_samples(photo, saturated, camera, rig, plate, *, block: int = 4, label: str = "photo",
+                  view: PlateView | None = None):
+    """(X (M, B, 3) mm, L (M, 3)) of one HDR photo (H, W, 3) of `plate` by `camera` (step 1): the plate points
+    of the B = block^2 pixels of each block wholly on the plate, and the block's mean LED-RGB radiance.
+    `saturated` (H, W) marks photosites saturated in any frame. `view`: plate_view(camera, rig, plate, block),
+    made once for the many photos of one camera and plate (else made here)."""
+    from twin.camera.correction import apply_colour_matrix
 
     photo = np.asarray(photo, np.float64)
     if photo.shape != (camera.height, camera.width, 3):
@@ -90,30 +129,19 @@ def plate_samples(photo, saturated, camera, rig, plate, *, block: int = 4, label
                                   f"({camera.height}, {camera.width}, 3)")
     if not np.isfinite(photo).all():
         raise LEDCalibrationError(f"{label}: photo contains NaN or Inf")
-    flat, C = calibration if calibration is not None else (flat_field(camera, rig.flat_fields.get(camera.name)),
-                                                            colour_matrix(camera))
-    img = apply_colour_matrix(photo * flat[..., None], C)
-    H, W = (camera.height // block) * block, (camera.width // block) * block
-    v, u = np.mgrid[0:H, 0:W]
-    _, on = plate.points(rig, camera, np.stack([u.ravel(), v.ravel()], 1).astype(np.float64))
-    # 2 px inside the plate's edge: the bilinear demosaic (twin.camera.bayer) mixes a pixel's neighbours, and
-    # next to the edge those are off the plate (measured: the R and B of the edge blocks off by up to 50%)
-    on = ndimage.binary_erosion(on.reshape(H, W), iterations=2)
+    view = view or plate_view(camera, rig, plate, block)
+    b = view.block
+    flat, C = view.calibration
+    H, W = view.on.shape[0] * b, view.on.shape[1] * b
+    img = apply_colour_matrix(photo[:H, :W] * flat[:H, :W, None], C)
     bad = np.zeros((H, W), bool) if saturated is None else np.asarray(saturated, bool)[:H, :W]
-
-    def blocks(a):
-        return a.reshape(H // block, block, W // block, block, *a.shape[2:]).swapaxes(1, 2).reshape(
-            H // block, W // block, block * block, *a.shape[2:])
-
-    whole = blocks(on).all(axis=2) & ~blocks(bad).any(axis=2)
-    if blocks(bad).any(axis=2)[blocks(on).all(axis=2)].mean() > 0.5:
+    hit = _blocks(bad, b).any(axis=2)[view.on]
+    if hit.mean() > 0.5:
         raise LEDCalibrationError(f"{label}: more than half of the plate is saturated; expose shorter")
-    L = blocks(img[:H, :W]).mean(axis=2)[whole]
-    uv = np.stack([u, v], -1).astype(np.float64)
-    X, _ = plate.points(rig, camera, blocks(uv)[whole].reshape(-1, 2))
+    L = _blocks(img, b).mean(axis=2)[view.on]
     grey = L.mean(axis=1)
-    keep = grey > DARK_FRACTION * grey.max() if grey.size and grey.max() > 0 else np.zeros(len(L), bool)
-    return X.reshape(len(L), block * block, 3)[keep], L[keep]
+    keep = ~hit & (grey > DARK_FRACTION * grey[~hit].max() if (~hit).any() and grey[~hit].max() > 0 else False)
+    return view.points[keep], L[keep]
 
 
 def _frame(n0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -137,7 +165,7 @@ def _log_geometry(p, n, k, X, z, albedo):
 def _elevation_deg(p, X, origin, z) -> float:
     """The LED's elevation (deg) over the plate of the points X (M, B, 3), seen from the plate's centre
     (origin + its height along z)."""
-    c = origin + float(np.mean((X[:, :, :] - origin) @ z)) * z
+    c = origin + float(np.mean((X - origin) @ z)) * z
     d = p - c
     return math.degrees(math.asin(float(d @ z) / float(np.linalg.norm(d))))
 

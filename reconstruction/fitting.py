@@ -877,7 +877,7 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     def data(x, jac: bool):
         """Per chunk of texels (only the 5 x 5 normal equations are kept, not the Jacobians: the paper rig's
         residuals are 3 x 12,288 + photos per texel): each texel's sum of squared residuals, their total, the
-        Gauss-Newton blocks J^T J and gradients J^T r (None without jac), and the residuals per texel."""
+        Gauss-Newton blocks J^T J and gradients J^T r (None without jac), and the number of residuals a texel."""
         rows, total, Hs, gs, count = [], 0.0, [], [], 1
         with torch.no_grad():
             for idx in _chunks(prob, c.batch):

@@ -283,18 +283,20 @@ class Rig:
         the per-pixel flat fields), i.e. of what an acquisition network and its patterns depend on: the LEDs,
         their profile, the boards, the sample plane, the cameras' poses and lenses. A calibration of the
         former keeps it."""
-        plain = replace(self, cameras={n: replace(c, sensor=SensorParams()) for n, c in self.cameras.items()},
-                        flat_fields={})
-        return plain.digest()
+        return self._without_sensors().digest()
 
     def layout_digest(self) -> str:
         """sha256 of the rig without what a lab calibrates of the same device beyond the cameras' geometry: how
         the cameras record light (geometry_digest) and the LEDs' positions, normals, profiles and intensities
         (calibration.leds). Two rigs with the same layout digest are one device, calibrated differently: the
         same LEDs on the same boards, the same sample plane, frame and camera poses and lenses."""
-        plain = replace(self, cameras={n: replace(c, sensor=SensorParams()) for n, c in self.cameras.items()},
-                        flat_fields={})
-        return hashlib.sha256(canonical_bytes(plain, ("positions", "normals", "profile", "intensity"))).hexdigest()
+        return hashlib.sha256(canonical_bytes(self._without_sensors(),
+                                              ("positions", "normals", "profile", "intensity"))).hexdigest()
+
+    def _without_sensors(self) -> "Rig":
+        """The rig with default camera sensors and no flat fields: without how its cameras record light."""
+        return replace(self, cameras={n: replace(c, sensor=SensorParams()) for n, c in self.cameras.items()},
+                       flat_fields={})
 
     def summary(self) -> dict:
         """What `hemicube rig info` prints."""

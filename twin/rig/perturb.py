@@ -128,4 +128,4 @@ def perturb_leds(rig, seed: int):
         prof[sel, 0] *= rng.uniform(0.8, 1.2) * rng.normal(1.0, 0.02, sel.size)
         inten[sel] *= rng.uniform(0.9, 1.1, (sel.size, 3))
     new = replace(leds, positions=pos, normals=nrm, profile=prof, intensity=inten)
-    return replace(rig, leds=new, name=rig.name)
+    return replace(rig, leds=new)
