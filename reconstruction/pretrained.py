@@ -3,8 +3,9 @@ capture plan need no training.
 
     reconstruction/pretrained/<rig>/model.safetensors   the network's weights (safetensors)
     reconstruction/pretrained/<rig>/model.json          how it was made: the `hemicube train` command,
-                                                        its TrainConfig, seed, steps, rig digest, and
-                                                        the held-out Eq. 3 loss it reached
+                                                        its TrainConfig, seed, steps, rig digest, the
+                                                        held-out Eq. 3 loss it reached, and the weights
+                                                        file's sha256 (checked on every load)
 
 Two ship: `mini` (260 k parameters, float32, ~1 MB) and `paper` (the compact architecture,
 reconstruction.network, 6.5 M parameters: its weight matrices in float16, the rest float32, 13 MB; the
@@ -21,6 +22,7 @@ shipping a retrained network, run
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 from pathlib import Path
 
@@ -45,15 +47,30 @@ def pretrained_info(rig_name: str) -> dict | None:
 
 def load_pretrained(rig_name: str = "mini", device: str = "cpu") -> tuple[AcquisitionNet, dict]:
     """The shipped network for a built-in rig, in eval mode, and its model.json."""
-    from safetensors.torch import load_file
-
-    info = pretrained_info(rig_name)
-    if info is None:
+    if pretrained_info(rig_name) is None:
         raise FileNotFoundError(f"no pretrained network ships for rig {rig_name!r} "
                                 f"(available: {sorted(p.name for p in PRETRAINED_DIR.iterdir() if p.is_dir())})")
+    return load_shipped(PRETRAINED_DIR / rig_name, device)
+
+
+def load_shipped(folder, device: str = "cpu") -> tuple[AcquisitionNet, dict]:
+    """The network of a folder `ship_network` wrote, in eval mode, and its model.json. The weights must be the
+    file model.json describes (its weights_sha256): the two files are written one after the other, so a ship
+    killed between them, or a weights file swapped or damaged since, would otherwise load weights that the
+    recorded scores and patterns do not belong to."""
+    from safetensors.torch import load
+
+    folder = Path(folder)
+    info = json.loads((folder / "model.json").read_text())
+    blob = (folder / "model.safetensors").read_bytes()
+    digest = hashlib.sha256(blob).hexdigest()
+    if digest != info.get("weights_sha256"):
+        raise ValueError(f"{folder / 'model.safetensors'}: its sha256 {digest[:12]}... is not the "
+                         f"{str(info.get('weights_sha256'))[:12]}... that model.json records (a ship that did not "
+                         "finish, or a changed file); ship the network again (`hemicube network ship RUN`)")
     config = TrainConfig.from_json(info["config"])
     model = AcquisitionNet(config.network_config(info["num_upper_leds"]))
-    model.load_state_dict(load_file(str(PRETRAINED_DIR / rig_name / "model.safetensors")))
+    model.load_state_dict(load(blob))
     return model.to(device).eval(), info
 
 
@@ -163,7 +180,7 @@ def ship_network(run_dir, dest=None, device="cpu", commit: str = "") -> dict:
             "rig_digest": summary["rig_digest"], "num_upper_leds": summary["num_upper_leds"],
             "num_parameters": summary["num_parameters"], "architecture": config.architecture,
             "storage": "float16 weight matrices and patterns, float32 biases and BatchNorm statistics",
-            "heldout_loss": scores["heldout_loss"],
+            "heldout_loss": scores["heldout_loss"], "weights_sha256": hashlib.sha256(blob).hexdigest(),
             "heldout": {"size": config.heldout_size, "seed": config.seed,
                         "loss": "Eq. 3, mean over texels of sum over LEDs of (log(1+m_hat) - log(1+m))^2"},
             "scores": scores, "scored_on": str(torch.cuda.get_device_name() if device.startswith("cuda") else device),

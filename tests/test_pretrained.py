@@ -78,6 +78,8 @@ def test_no_model_for_other_rigs(tmp_path):
         load_pretrained("nosuch")
     model, info = load_pretrained("mini")
     assert not model.training and info["num_upper_leds"] == 396
+    for rig_name in ("mini", "paper"):  # the shipped pairs match (load_pretrained checks every load)
+        assert pretrained_info(rig_name)["weights_sha256"]
 
 
 def test_compact_architecture_fits_the_ship_limit_and_ships_as_scored(tmp_path):
@@ -107,5 +109,17 @@ def test_compact_architecture_fits_the_ship_limit_and_ships_as_scored(tmp_path):
     again = score_network(model, twin.load_rig("mini"), TrainConfig.from_json(info["config"]))
     assert again["heldout_loss"] == pytest.approx(info["heldout_loss"], rel=1e-6)
     assert load_run_model(run).decoder.widths[-2] == 64  # the bottleneck, scaled and at least 64
+    # model.json names its weights by sha256: a ship killed between its two files, or a weights file changed
+    # since, gives a one-line error on load instead of weights the recorded scores do not describe
+    from reconstruction.pretrained import load_shipped
+
+    loaded, _ = load_shipped(dest)
+    assert all(torch.equal(loaded.state_dict()[k].float(), model.state_dict()[k].float()) for k in tensors)
+    blob = bytearray((dest / "model.safetensors").read_bytes())
+    blob[-1] ^= 1
+    (dest / "model.safetensors").write_bytes(bytes(blob))
+    with pytest.raises(ValueError, match=r"model\.safetensors: its sha256 .* is not the .* that model\.json records") as e:
+        load_shipped(dest)
+    assert "\n" not in str(e.value)
     assert hemicube.cli.main(["network", "ship", str(tmp_path / "none"), "-o", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
