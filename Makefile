@@ -8,6 +8,9 @@ BIN    := $(VENV)/bin
 # torch==2.13.0 is the CPU file on disk on our machines and the regular PyPI build elsewhere.
 # Override with `make TORCH_SPEC="torch==2.x" setup`; an existing torch is never replaced.
 TORCH_SPEC ?= torch==2.13.0
+# The tests run in one process per core (pytest-xdist, at most 4), a test file per process: the Warp CPU kernels
+# are single-threaded, so one process leaves the other cores of CI's two idle. PYTEST_WORKERS= runs them in one.
+PYTEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile
 
 export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
@@ -29,4 +32,4 @@ validate: setup
 	$(BIN)/hemicube validate
 
 test: setup
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q $(PYTEST_WORKERS) $(PYTEST_ARGS)

@@ -244,6 +244,7 @@ class _Problem:
     weight: torch.Tensor  # (n, L, 3) the albedo quadratic's weights f'(m)^2 / (3 L)
     photos: tuple  # _Photos of each camera that has measurements (primary first); empty: lumitexels only
     upper: torch.Tensor  # (L,) int64: the upper LEDs' indices among the rig's
+    upper_rig: object  # the rig with its upper LEDs only: what the fit evaluates (the bottom ones light nothing here)
     ratio: torch.Tensor  # (2, L, 3): I[l, c] / I[l, 0] and I[l, c] / I[l, 1] (module docstring)
     frame: torch.Tensor  # (3, 3) rows N, X, Y of the sample plane
     scale_m: float  # "mse": the targets' means (the albedo scalar's role)
@@ -361,7 +362,7 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
 
     s = rig.sample
     return _Problem(rig, config, pos, m, _f(m, loss, scale_m), _df2(m, loss, scale_m) / (3 * L), tuple(photos),
-                    torch.as_tensor(upper, dtype=torch.int64, device=dev),
+                    torch.as_tensor(upper, dtype=torch.int64, device=dev), replace(rig, leds=rig.leds.subset(upper)),
                     T(np.stack([intensity / intensity[:, :1], intensity / intensity[:, 1:2]])),
                     T(np.stack([s.normal, s.x_axis, s.y_axis])), scale_m)
 
@@ -428,10 +429,10 @@ def _lumitexels(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Te
     """(n, L_upper, 3) network units seen from `camera` (None: config.camera): the twin's Warp forward model
     (differentiable)."""
     c = prob.config
-    m = twin.lumitexels(prob.rig, prob.pos, geom["normal"], geom["tangent"], rho_d, rho_s, geom["alpha_x"],
+    m = twin.lumitexels(prob.upper_rig, prob.pos, geom["normal"], geom["tangent"], rho_d, rho_s, geom["alpha_x"],
                         geom["alpha_y"], convention="physical", device=c.device, camera=camera or c.camera,
                         transparency=torch.zeros(prob.n, device=prob.pos.device), visibility=True)
-    return m.index_select(1, prob.upper) * LUMITEXEL_SCALE
+    return m * LUMITEXEL_SCALE
 
 
 def _bases(prob: _Problem, geom: dict, camera: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:

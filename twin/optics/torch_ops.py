@@ -9,6 +9,8 @@ Inputs are copied into the tape's own arrays: Warp's backward reads the arrays' 
 """
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 import warp as wp
@@ -21,39 +23,56 @@ def _wp_device(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
 
+def _launch(setup, pos, n, t, rd, rs, ax, ay, beta, w, grad: bool):
+    """Run the lumitexel kernel (and, with pattern weights w, the projection) on the inputs: (output, the
+    Warp input arrays, the tape). With `grad`, the inputs are copied into arrays that carry gradients (module
+    docstring) and the launches are recorded on a tape; without, the kernels read torch's memory in place and
+    nothing is recorded (the fit's evaluations under torch.no_grad: the same values, no copies)."""
+    rig, convention, camera, g, fresnel, eta, visibility = setup
+    dt = pos.dtype
+    device = _wp_device(pos)
+    double = dt == torch.float64
+    vec, scal = (wp.vec3d, wp.float64) if double else (wp.vec3f, wp.float32)
+    arrays = rig_arrays(rig, device, "float64" if double else "float32")
+    o = make_options(rig, arrays, convention, g, fresnel, eta, visibility)
+    cam_name = camera or next(iter(rig.cameras))
+    if cam_name not in arrays.cameras:
+        raise KeyError(f"rig {rig.name!r} has no camera {cam_name!r}; it has {list(rig.cameras)}")
+
+    def copy(x, dtype):
+        a = wp.from_torch(x.detach().contiguous(), dtype=dtype)
+        return wp.clone(a, requires_grad=True) if grad else a
+
+    ins = [copy(pos, vec), copy(n, vec), copy(t, vec), copy(rd, vec), copy(rs, vec), copy(ax, scal),
+           copy(ay, scal), copy(beta, scal)]
+    P, L = pos.shape[0], rig.num_leds
+    m = (wp.zeros if grad else wp.empty)((P, L), dtype=vec, device=device, requires_grad=grad)
+    tape = wp.Tape() if grad else None
+    with tape or contextlib.nullcontext():
+        pts = K.point_inputs(*ins, arrays.cameras[cam_name], device)
+        wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*pts, *_led_inputs(arrays, CONVENTIONS[convention]), o],
+                  outputs=[m], device=device)
+        out = m
+        if w is not None:
+            W = copy(w, vec)
+            ins.append(W)
+            out = wp.zeros((P, w.shape[0]), dtype=vec, device=device, requires_grad=grad)
+            wp.launch(K.project_kernel, dim=out.shape, inputs=[m, W], outputs=[out], device=device)
+    return out, ins, tape
+
+
+def _apply(setup, *args) -> torch.Tensor:
+    """WarpForward where torch records gradients for one of the inputs, else a plain launch."""
+    if torch.is_grad_enabled() and any(torch.is_tensor(a) and a.requires_grad for a in args):
+        return WarpForward.apply(setup, *args)
+    return wp.to_torch(_launch(setup, *args, grad=False)[0])
+
+
 class WarpForward(torch.autograd.Function):
     @staticmethod
     def forward(ctx, setup, pos, n, t, rd, rs, ax, ay, beta, w):
-        rig, convention, camera, g, fresnel, eta, visibility = setup
-        dt = pos.dtype
-        device = _wp_device(pos)
-        double = dt == torch.float64
-        vec, scal = (wp.vec3d, wp.float64) if double else (wp.vec3f, wp.float32)
-        arrays = rig_arrays(rig, device, "float64" if double else "float32")
-        o = make_options(rig, arrays, convention, g, fresnel, eta, visibility)
-        cam_name = camera or next(iter(rig.cameras))
-        if cam_name not in arrays.cameras:
-            raise KeyError(f"rig {rig.name!r} has no camera {cam_name!r}; it has {list(rig.cameras)}")
-
-        def copy(x, dtype):
-            return wp.clone(wp.from_torch(x.detach().contiguous(), dtype=dtype), requires_grad=True)
-
-        ins = [copy(pos, vec), copy(n, vec), copy(t, vec), copy(rd, vec), copy(rs, vec), copy(ax, scal),
-               copy(ay, scal), copy(beta, scal)]
-        P, L = pos.shape[0], rig.num_leds
-        m = wp.zeros((P, L), dtype=vec, device=device, requires_grad=True)
-        tape = wp.Tape()
-        with tape:
-            pts = K.point_inputs(*ins, arrays.cameras[cam_name], device)
-            wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*pts, *_led_inputs(arrays, CONVENTIONS[convention]), o],
-                      outputs=[m], device=device)
-            out = m
-            if w is not None:
-                W = copy(w, vec)
-                ins.append(W)
-                out = wp.zeros((P, w.shape[0]), dtype=vec, device=device, requires_grad=True)
-                wp.launch(K.project_kernel, dim=out.shape, inputs=[m, W], outputs=[out], device=device)
-        ctx.tape, ctx.ins, ctx.out = tape, ins, out
+        out, ctx.ins, ctx.tape = _launch(setup, pos, n, t, rd, rs, ax, ay, beta, w, grad=True)
+        ctx.out = out
         return wp.to_torch(out).clone()
 
     @staticmethod
@@ -91,7 +110,7 @@ def _tensors(pos, n, t, rd, rs, ax, ay, transparency, device):
 def lumitexels_torch(rig, pos, n, t, rd, rs, ax, ay, *, convention, device, camera, transparency, g, fresnel,
                      eta, visibility):
     args = _tensors(pos, n, t, rd, rs, ax, ay, transparency, device)
-    return WarpForward.apply((rig, convention, camera, g, fresnel, eta, visibility), *args, None)
+    return _apply((rig, convention, camera, g, fresnel, eta, visibility), *args, None)
 
 
 def measurements_torch(rig, pos, n, t, rd, rs, ax, ay, patterns, *, convention, device, camera, transparency, g,
@@ -104,4 +123,4 @@ def measurements_torch(rig, pos, n, t, rd, rs, ax, ay, patterns, *, convention, 
     w = w.to(args[0].device, args[0].dtype)
     if w.ndim == 2:
         w = w[..., None].expand(*w.shape, 3)
-    return WarpForward.apply((rig, convention, camera, g, fresnel, eta, visibility), *args, w)
+    return _apply((rig, convention, camera, g, fresnel, eta, visibility), *args, w)
