@@ -168,3 +168,69 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
                                        "full_passes_max_diff_of_max": full_diff,
                                        "check_iterations": list(CHECK_ITERATIONS)},
     }, [check])
+
+
+def bench_fit_forward(rig_name="mini", device="cpu", texels=2304, repeats=5, seed=0) -> dict:
+    """`hemicube bench fit-forward`: seconds of one evaluation of the forward model as the GGX fit makes it
+    (reconstruction.fitting._lumitexels: unit diffuse and specular albedo, the rig's upper LEDs, without
+    gradients), against the same-run baseline of the path the fit took before: the autograd bridge's tape and
+    copies (twin.optics.torch_ops.WarpForward) over all of the rig's LEDs, then the upper ones selected. The
+    two must agree to the bit (rtol 0): they run the same kernel on the same numbers."""
+    from dataclasses import replace
+
+    import torch
+
+    import twin
+    from twin.bench import finish_checks, same_work
+    from twin.optics.torch_ops import WarpForward, _tensors
+
+    if isinstance(texels, bool) or not isinstance(texels, int) or texels < 1:
+        raise ValueError(f"texels must be a positive integer, got {texels!r}")
+    rig = twin.load_rig(rig_name)
+    upper = np.flatnonzero(~np.asarray(rig.is_bottom))
+    sub = replace(rig, leds=rig.leds.subset(upper))
+    g = torch.Generator().manual_seed(seed)
+    half = 0.45 * rig.sample.max_size
+    pos = torch.as_tensor(rig.sample.origin, dtype=torch.float32).repeat(texels, 1)
+    pos += (torch.rand(texels, 1, generator=g) * 2 - 1) * half * torch.as_tensor(rig.sample.x_axis, dtype=torch.float32)
+    pos += (torch.rand(texels, 1, generator=g) * 2 - 1) * half * torch.as_tensor(rig.sample.y_axis, dtype=torch.float32)
+    n = torch.as_tensor(rig.sample.normal, dtype=torch.float32) + 0.3 * (torch.rand(texels, 3, generator=g) - 0.5)
+    n = (n / n.norm(dim=1, keepdim=True)).to(device)
+    t = torch.as_tensor(rig.sample.x_axis, dtype=torch.float32).repeat(texels, 1).to(device)
+    pos = pos.to(device)
+    e = torch.eye(3, device=device)
+    rd, rs = e[0].expand(texels, 3), e[1].expand(texels, 3)
+    ax = torch.exp(torch.rand(texels, generator=g) * 3.5 - 4.5).to(device)
+    ay = torch.exp(torch.rand(texels, generator=g) * 3.5 - 4.5).to(device)
+    beta = torch.zeros(texels, device=device)
+    idx = torch.as_tensor(upper, device=device)
+
+    def fit_path():
+        return twin.lumitexels(sub, pos, n, t, rd, rs, ax, ay, convention="physical", device=device,
+                               camera="primary", transparency=beta, visibility=True)
+
+    def tape_path():
+        args = _tensors(pos, n, t, rd, rs, ax, ay, beta, device)
+        return WarpForward.apply((rig, "physical", "primary", "separable", "schlick", 1.5, True), *args,
+                                 None).index_select(1, idx)
+
+    sync = (lambda: torch.cuda.synchronize()) if str(device).startswith("cuda") else (lambda: None)
+    seconds = {}
+    with torch.no_grad():
+        out = {}
+        for name, fn in (("fit_path", fit_path), ("baseline_tape_all_leds", tape_path)):
+            out[name] = fn().cpu().numpy()  # kernels loaded, not timed
+            ts = []
+            for _ in range(repeats):
+                sync()
+                t0 = time.perf_counter()
+                fn()
+                sync()
+                ts.append(time.perf_counter() - t0)
+            seconds[name] = min(ts)
+    check = same_work("fit_path_vs_tape_all_leds", out["fit_path"], out["baseline_tape_all_leds"], rtol=0.0)
+    return finish_checks({"bench": "fit-forward", "rig": rig.name, "leds_upper": int(upper.size),
+                          "leds_all": rig.num_leds, "texels": texels, "repeats": repeats,
+                          "device": torch.cuda.get_device_name(0) if str(device).startswith("cuda") else "cpu",
+                          "seconds": seconds, "speedup": seconds["baseline_tape_all_leds"] / seconds["fit_path"]},
+                         [check])

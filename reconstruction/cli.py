@@ -84,11 +84,14 @@ def cmd_reconstruct_many(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import bench_reconstruct
+    from .bench import bench_fit_forward, bench_reconstruct
 
     from twin.bench import bench_exit
 
-    res = bench_reconstruct(args.rig, args.device, args.texels, args.network)
+    if args.bench_command == "fit-forward":
+        res = bench_fit_forward(args.rig, args.device, args.texels, args.repeats)
+    else:
+        res = bench_reconstruct(args.rig, args.device, args.texels, args.network)
     print(json.dumps(res, indent=2))
     return bench_exit(res)
 
@@ -174,4 +177,12 @@ def register_bench(bench) -> None:
     s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
     s.add_argument("--texels", type=int, default=16384, help="synthetic texels timed (default: %(default)s)")
     s.add_argument("--network", help="a `hemicube train` run folder (default: the shipped one, else untrained)")
+    s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("fit-forward", help="seconds of one forward-model evaluation of the GGX fit, against the "
+                         "autograd path over every LED")
+    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
+    s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
+    s.add_argument("--texels", type=int, default=2304, help="texels evaluated at once (default: %(default)s, the "
+                   "mini rig's 48^2 grid)")
+    s.add_argument("--repeats", type=int, default=5, help="timed runs, the fastest reported (default: %(default)s)")
     s.set_defaults(func=cmd_bench)

@@ -54,7 +54,8 @@ Methods (FITTING_METHODS, dispatched by `fit_method`, one function each):
 
 Initialisation (both methods; ours): candidate geometries (the plane normal, and for texels whose specular
 peak points elsewhere the half vector of that peak; times a few isotropic and anisotropic roughness pairs
-and tangent angles), each with its closed-form albedos; each texel starts from its lowest-loss candidate.
+and tangent angles), each with its closed-form albedos; each texel starts from its lowest-loss candidate,
+ranked on the primary view's lumitexels and photos.
 The neural method first regresses its heads onto these numbers (warm start).
 
 Measured (the evidence for "direct", "log1p" and lambda_lines, taken with the Adam version of "direct" before
@@ -654,6 +655,10 @@ def _initial(prob: _Problem):
     """(geometry numbers (n, 5), rho_d, rho_s) of the best initial candidate per texel: the plane normal,
     and where they point elsewhere (> 1 deg off), the specular peak's half vector (_peak_normal) and the
     diffuse shading's normal (_diffuse_normal), each with every roughness / tangent candidate."""
+    # candidates are ranked on config.camera's lumitexels and photos alone (ours): the other view's photos, with
+    # albedos of their own (_projected), inform the geometry that Levenberg-Marquardt refines, and ranking with
+    # them doubled the candidates' cost for no gain on the material suite (docs/accuracy.md, 2026-11-25)
+    prob = replace(prob, photos=tuple(g for g in prob.photos if g.camera == prob.config.camera))
     with torch.no_grad():
         N = prob.frame[0].expand(prob.n, 3)
         best = _best_candidate(prob, N)

@@ -24,6 +24,12 @@ def reference_present() -> bool:
     return (REFERENCE_DIR / "lights.bin").is_file()
 
 
+def pytest_collection_modifyitems(items):
+    """The material suite first (stable otherwise): it is the longest file by far, and pytest-xdist hands files to
+    its processes in this order, so started last it would run on alone after every other file had finished."""
+    items.sort(key=lambda item: item.path.name != "test_validate_suite.py")
+
+
 @pytest.fixture(scope="session")
 def reference_dir() -> Path:
     if not reference_present():
@@ -85,11 +91,20 @@ def validate_dir(tmp_path_factory):
     is taken once per session; reconstruction tests read it, the main-job test resumes it (verified, not
     retaken)."""
     import twin
+    from filelock import FileLock
+
     from twin.capture.runner import capture
 
-    out = tmp_path_factory.mktemp("validate")
-    capture(twin.load_rig("mini"), "ramps", out / "capture", seed=1, progress=False)
-    return out
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        out = tmp_path_factory.mktemp("validate")
+        capture(twin.load_rig("mini"), "ramps", out / "capture", seed=1, progress=False)
+        return out
+    # under pytest-xdist every test process has a session of its own: the first takes the capture into the
+    # run's shared folder, the others wait for it and take nothing (a finished capture is reused as it is)
+    shared = tmp_path_factory.getbasetemp().parent
+    with FileLock(str(shared / "validate.lock")):
+        capture(twin.load_rig("mini"), "ramps", shared / "validate" / "capture", seed=1, progress=False)
+    return shared / "validate"
 
 
 @pytest.fixture(scope="session")

@@ -57,6 +57,21 @@ def test_bench_reconstruct_baseline_matches_and_drift_fails(capsys, monkeypatch)
     assert rc == 1 and "finetune_batch100_vs_batched_lines" in err
 
 
+FIT = ["bench", "fit-forward", "--rig", "mini", "--texels", "32", "--repeats", "1"]
+
+
+def test_bench_fit_forward_baseline_matches_to_the_bit_and_drift_fails(capsys, monkeypatch):
+    rc, res, _ = _run(FIT, capsys)
+    assert rc == 0 and res["passed"] and res["leds_upper"] < res["leds_all"]
+    assert res["checks"][0]["check"] == "fit_path_vs_tape_all_leds" and res["checks"][0]["max_rel_diff"] == 0.0
+    import twin.optics.torch_ops as ops
+
+    plain = ops.WarpForward.apply
+    monkeypatch.setattr(ops.WarpForward, "apply", lambda *a: plain(*a) * (1 + 1e-6))  # one float32 ulp off
+    rc, res, err = _run(FIT, capsys)
+    assert rc == 1 and "fit_path_vs_tape_all_leds" in err
+
+
 CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--resolution", "32", "--scale", "0.5"]
 
 

@@ -3,7 +3,7 @@
 must cover together, each category's character on its default AND its held-back compositions, and
 `hemicube samples list` (the OpenSVBRDF folder round trip of every built-in sample is in test_samples.py).
 
-The suite and held-back compositions of it run end to end in tests/test_validate.py.
+The suite and held-back compositions of it run end to end in tests/test_validate_suite.py.
 """
 from __future__ import annotations
 
