@@ -13,12 +13,6 @@ import numpy as np
 import pytest
 
 os.environ.setdefault("WARP_CACHE_PATH", str(Path(__file__).resolve().parents[1] / ".cache" / "warp"))
-if os.environ.get("PYTEST_XDIST_WORKER") is not None:
-    # one test process per core (pytest-xdist, Makefile): torch's and NumPy's own thread pools would only contend
-    # for that core with the other processes' (spin-waiting); set before anything imports torch, and inherited by
-    # the processes the tests start (the CLI, torchrun, Ray's workers)
-    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ.setdefault(_var, "1")
 
 REFERENCE_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "opensvbrdf_lightstage"
 REFERENCE_SKIP_REASON = ("reference data ../shared/reference not present "
