@@ -244,7 +244,6 @@ class _Problem:
     target_f: torch.Tensor  # (n, L, 3) f(m) (the loss compares f(m_hat) with it; `_f`)
     weight: torch.Tensor  # (n, L, 3) the albedo quadratic's weights f'(m)^2 / (3 L)
     photos: tuple  # _Photos of each camera that has measurements (primary first); empty: lumitexels only
-    upper: torch.Tensor  # (L,) int64: the upper LEDs' indices among the rig's
     upper_rig: object  # the rig with its upper LEDs only: what the fit evaluates (the bottom ones light nothing here)
     ratio: torch.Tensor  # (2, L, 3): I[l, c] / I[l, 0] and I[l, c] / I[l, 1] (module docstring)
     frame: torch.Tensor  # (3, 3) rows N, X, Y of the sample plane
@@ -363,7 +362,7 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
 
     s = rig.sample
     return _Problem(rig, config, pos, m, _f(m, loss, scale_m), _df2(m, loss, scale_m) / (3 * L), tuple(photos),
-                    torch.as_tensor(upper, dtype=torch.int64, device=dev), replace(rig, leds=rig.leds.subset(upper)),
+                    replace(rig, leds=rig.leds.subset(upper)),
                     T(np.stack([intensity / intensity[:, :1], intensity / intensity[:, 1:2]])),
                     T(np.stack([s.normal, s.x_axis, s.y_axis])), scale_m)
 
@@ -592,7 +591,7 @@ def _peak_normal(prob: _Problem) -> torch.Tensor:
     ratio = torch.where(lit, grey / d0.clamp_min(1e-12), torch.full_like(grey, math.nan))
     level = torch.nanquantile(ratio, 0.25, dim=1, keepdim=True).nan_to_num(0.0)
     l_max = (grey - level * d0).argmax(1)
-    led = torch.tensor(prob.rig.leds.positions, dtype=torch.float32, device=N.device)[prob.upper][l_max]
+    led = torch.tensor(prob.upper_rig.leds.positions, dtype=torch.float32, device=N.device)[l_max]
     cam = torch.tensor(prob.rig.camera(c.camera).centre, dtype=torch.float32, device=N.device)
     h = _unit(_unit(led - prob.pos) + _unit(cam - prob.pos))
     return torch.where(((h * N).sum(-1, keepdim=True) > 0.5), h, N)
@@ -612,7 +611,7 @@ def _diffuse_normal(prob: _Problem) -> torch.Tensor:
     N = prob.frame[0].expand(prob.n, 3)
     geom = _geometry(torch.zeros(prob.n, GEOMETRY_SIZE, device=N.device), prob.frame, c)
     d0 = _bases(prob, geom)[0].mean(2)
-    led = torch.tensor(prob.rig.leds.positions, dtype=torch.float32, device=N.device)[prob.upper]
+    led = torch.tensor(prob.upper_rig.leds.positions, dtype=torch.float32, device=N.device)
     w = _unit(led[None] - prob.pos[:, None])  # (n, L, 3)
     cos_n = (w * N[:, None]).sum(-1)
     f = torch.where(cos_n > 0.05, d0 / cos_n.clamp_min(0.05), torch.zeros_like(d0))

@@ -16,7 +16,8 @@ import torch
 import warp as wp
 
 from twin.optics import lumitexel as K
-from twin.optics.inputs import CONVENTIONS, _led_inputs, make_options, rig_arrays, validate_patterns, validate_points
+from twin.optics.inputs import (CONVENTIONS, _init, _led_inputs, make_options, rig_arrays, validate_patterns,
+                                validate_points)
 
 
 def _wp_device(t: torch.Tensor) -> str:
@@ -65,7 +66,14 @@ def _apply(setup, *args) -> torch.Tensor:
     """WarpForward where torch records gradients for one of the inputs, else a plain launch."""
     if torch.is_grad_enabled() and any(torch.is_tensor(a) and a.requires_grad for a in args):
         return WarpForward.apply(setup, *args)
-    return wp.to_torch(_launch(setup, *args, grad=False)[0])
+    dev = args[0].device
+    if dev.type != "cuda":
+        return wp.to_torch(_launch(setup, *args, grad=False)[0])
+    # the kernels read torch's memory in place, so they run on torch's stream: the inputs torch frees when this
+    # returns (contiguous copies) are reused only by work queued after them
+    _init()  # Warp's runtime, before the stream is looked up
+    with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(dev))):
+        return wp.to_torch(_launch(setup, *args, grad=False)[0])
 
 
 class WarpForward(torch.autograd.Function):
