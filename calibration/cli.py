@@ -1,9 +1,11 @@
 """`hemicube calibrate` (issue #16): calibration captures in the twin, the procedures of this package on their
 photos, a calibrated rig folder and a report scored against the twin's truth. Built so far: the cameras
-(`calibration.cameras`), the vignetting / flat field (`calibration.vignetting`) and the upper LEDs' positions,
-normals, profiles and intensities (`calibration.leds`)."""
+(`calibration.cameras`), the vignetting / flat field (`calibration.vignetting`), the upper LEDs' positions,
+normals, profiles and intensities (`calibration.leds`) and each camera's crosstalk and colour matrix
+(`calibration.colour`)."""
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 from dataclasses import replace
@@ -149,6 +151,68 @@ def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int 
     return rig, {"leds": report}
 
 
+COLOUR_GOALS = {"delta_e2000_median": 1.0, "crosstalk_max": 0.005}  # issue #16: ΔE2000 <= 1 median; ours: 0.5%
+
+
+def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, progress: bool = True) -> tuple:
+    """Photograph the white plate (each LED channel alone, then white) and a ColorChecker (white) with every
+    camera of the TRUE rig, whose colour is `spectra`'s (twin.camera.spectral), and calibrate each camera's
+    crosstalk and colour matrix to XYZ from those photos alone (calibration.colour; the cameras and flat fields
+    as the nominal rig has them: calibrated beforehand). Returns (the nominal rig with the calibrated crosstalks,
+    a report per camera scored against the truth, with the nominal crosstalk's own error beside it)."""
+    import numpy as np
+
+    from twin.camera.hdr import still_photo
+    from twin.camera.spectral import chart_radiance
+    from twin.targets.colorchecker import ColorChecker
+    from twin.targets.diffuse import DiffusePlate
+
+    from .colour import chart_patches, crosstalk_from_photos, delta_e2000, matrix_to_xyz
+
+    upper = np.flatnonzero(~truth.is_bottom)
+    plate, chart = DiffusePlate(), ColorChecker()
+    names, rho = chart.names_and_spectra()
+    cams, report = {}, {}
+    for name, cam in truth.cameras.items():
+        known = nominal.camera(name)
+        shots = itertools.count(0, frames)  # each photo its own noise draws
+
+        def photo(radiance, camera_rgb=False):
+            return still_photo(radiance, cam, seed=seed, frames=frames, first_frame=next(shots), camera_key=name,
+                               flat_field=truth.flat_fields.get(name), camera_rgb=camera_rgb)
+
+        light = sum(plate.radiance(truth, name, upper[i:i + LED_BATCH]).sum(axis=0)
+                    for i in range(0, len(upper), LED_BATCH))  # LED RGB: every upper LED at full drive
+        channel = [photo(light * np.eye(3)[c]) for c in range(3)]
+        M = crosstalk_from_photos([p for p, _ in channel], [m for _, m in channel], known, nominal, plate,
+                                  label=f"{name}, white plate")
+        white = chart_patches(*photo(light), known, nominal, chart, label=f"{name}, white plate")
+        r = chart_patches(*photo(chart_radiance(chart, truth, spectra, name, upper), camera_rgb=True), known, nominal,
+                          chart, label=f"{name}, ColorChecker") / white * plate.albedo
+        # the LEDs' white as a spectroradiometer reads it off the plate where the chart lies: its LED-RGB mix
+        weights = light[chart.patch_map(truth, cam) >= 0].mean(axis=0)
+        ref = spectra.xyz(rho, weights)
+        A = matrix_to_xyz(r, ref)
+        dE = delta_e2000(r @ A.T, ref, spectra.xyz(np.ones(rho.shape[1]), weights))
+        Mt = np.asarray(cam.sensor.crosstalk, np.float64)
+        residual = lambda Mc: float(np.abs(np.linalg.solve(Mc, Mt) - np.eye(3)).max())  # noqa: E731
+        cams[name] = replace(known, sensor=replace(known.sensor, crosstalk=tuple(map(tuple, M.tolist()))))
+        goals = {"delta_e2000_median": float(np.median(dE)) <= COLOUR_GOALS["delta_e2000_median"],
+                 "crosstalk_max": residual(M) <= COLOUR_GOALS["crosstalk_max"]}
+        report[name] = {"photos": 6, "frames_per_photo": frames, "crosstalk": M.tolist(), "true_crosstalk": Mt.tolist(),
+                        "crosstalk_residual_max": residual(M),
+                        "nominal_error": {"crosstalk_residual_max": residual(np.asarray(known.sensor.crosstalk))},
+                        "to_xyz_from_camera_rgb": A.tolist(), "to_xyz_from_led_rgb": (A @ M).tolist(),
+                        "white_led_rgb": (weights / weights.max()).tolist(),
+                        "delta_e2000": {"median": float(np.median(dE)), "p90": float(np.percentile(dE, 90)),
+                                        "max": float(dE.max()), "per_patch": dict(zip(names, dE.round(3).tolist()))},
+                        "goals": goals, "passed": all(goals.values())}
+        if progress:
+            print(f"[calibrate] {name}: crosstalk from 3 plate photos, colour matrix from the ColorChecker",
+                  file=sys.stderr, flush=True)
+    return replace(nominal, cameras=cams), report
+
+
 def cmd_calibrate(args) -> int:
     import twin
     from twin.rig.perturb import perturb_cameras, perturb_leds, perturb_vignetting
@@ -157,7 +221,7 @@ def cmd_calibrate(args) -> int:
 
     nominal = twin.load_rig(args.rig)
     if args.frames is None:
-        args.frames = 16 if args.what == "leds" else 32
+        args.frames = 16 if args.what in ("leds", "colour") else 32
     progress = not args.no_progress
     if args.what == "leds":
         from .leds import LEDCalibrationError
@@ -175,6 +239,25 @@ def cmd_calibrate(args) -> int:
             return (f"{r['calibrated']} LEDs: position median {p['median']:.2f} mm (p90 {p['p90']:.2f}, nominal "
                     f"{n['median']:.2f})  normal {r['normal_deg']['median']:.2f} deg  profile {f['median']:.2f}% "
                     f"(p90 {f['p90']:.2f}%)  emission {r['emission_pct']['median']:.2f}%")
+    elif args.what == "colour":
+        from twin.camera.spectral import device_spectra, with_crosstalk
+
+        from .colour import ColourCalibrationError
+
+        if args.frames < 1:
+            raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
+        spectra = device_spectra(nominal.cameras, args.perturb)
+        # the truth's colour is always its spectra's (without --perturb, the nominal spectra's crosstalk: the
+        # nominal rigs' identity is an idealised sensor that no real colour filter has)
+        perturb, errors = (lambda rig, seed: with_crosstalk(rig, spectra)), ColourCalibrationError
+        run = lambda truth: calibrate_colour(nominal, truth, spectra, args.frames, args.seed, progress)  # noqa: E731
+        doc = {"frames": args.frames, "goals": COLOUR_GOALS, "spectra": spectra.to_dict()}
+
+        def line(r):
+            d = r["delta_e2000"]
+            return (f"ColorChecker ΔE2000 median {d['median']:.2f} (p90 {d['p90']:.2f}, max {d['max']:.2f})  crosstalk "
+                    f"residual {100 * r['crosstalk_residual_max']:.3f}% (nominal rig: "
+                    f"{100 * r['nominal_error']['crosstalk_residual_max']:.1f}%)")
     elif args.what == "vignetting":
         if args.frames < 1:
             raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
@@ -197,7 +280,7 @@ def cmd_calibrate(args) -> int:
             return (f"RMS {r['rms_px']:.3f} px  focal {r['focal_pct']:.4f}%  principal {r['principal_px']:.2f} px  "
                     f"centre {r['centre_mm']:.2f} mm  rotation {r['rotation_deg']:.3f} deg  sample "
                     f"{r['sample_px_median']:.3f} px median (nominal rig: {r['nominal_error']['sample_px_median']:.2f})")
-    truth = perturb(nominal, args.perturb) if args.perturb is not None else nominal
+    truth = perturb(nominal, args.perturb) if args.perturb is not None or args.what == "colour" else nominal
     try:
         rig, report = run(truth)
     except errors as e:
@@ -224,8 +307,8 @@ def _write(output: Path, rig, truth, doc: dict) -> None:
 
 def register(sub) -> None:
     s = sub.add_parser("calibrate", help="calibrate from photographs of targets in the twin; write a calibrated rig "
-                       "folder and a report scored against the truth (built: cameras, vignetting, LEDs)")
-    s.add_argument("what", choices=("cameras", "vignetting", "leds"), help="what to calibrate")
+                       "folder and a report scored against the truth (built: cameras, vignetting, LEDs, colour)")
+    s.add_argument("what", choices=("cameras", "vignetting", "leds", "colour"), help="what to calibrate")
     s.add_argument("--rig", default="paper", help="built-in rig or rig folder: the nominal values (default: %(default)s)")
     s.add_argument("--perturb", type=int, metavar="SEED", help="the true device is the nominal rig with seeded "
                    "errors (twin.rig.perturb); default: the nominal rig itself")
@@ -233,7 +316,7 @@ def register(sub) -> None:
     s.add_argument("--seed", type=int, default=0, help="seed of the board poses and the photos' noise (default: "
                    "%(default)s)")
     s.add_argument("--frames", type=int, default=None, help="frames averaged per photo (vignetting: flat-field "
-                   "photos, default 32; leds: plate photos, default 16)")
+                   "photos, default 32; leds and colour: plate and chart photos, default 16)")
     s.add_argument("--led-step", type=int, default=1, help="leds: calibrate every N-th upper LED, the others keep "
                    "their nominal values (default: %(default)s, all)")
     s.add_argument("--binning", type=int, default=1, help="leds: bin the cameras' pixels B x B for the plate photos "

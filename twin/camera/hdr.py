@@ -410,20 +410,22 @@ def choose_bracket(max_radiance: float, sensor: SensorParams, n: int = 3, ratio:
 
 
 def still_photo(radiance, camera, *, seed: int, frames: int, camera_key: str, first_frame: int = 0,
-                fill: float = 0.6, flat_field=None, device="cpu") -> tuple[np.ndarray, np.ndarray]:
+                fill: float = 0.6, flat_field=None, camera_rgb: bool = False,
+                device="cpu") -> tuple[np.ndarray, np.ndarray]:
     """A photo of a static scene, as a calibration takes one: `radiance` (H, W, 3, scene radiance before the
     optics) through `camera`'s crosstalk and falloff (twin.camera.sensor.apply_optics, with the per-pixel
     `flat_field` factor if given) and sensor, `frames` raw frames at the one exposure that puts the brightest
     photosite's mean at `fill` of saturation, each merged alone and then averaged (averaging frames beats the
     shot noise down; one exposure suffices for a scene without highlights). The frames' noise draws are
     frames first_frame, first_frame + 1, ... of `seed` for `camera_key` (whose fixed patterns they share, as
-    photos of one sensor do). Returns the (H, W, 3) float64
+    photos of one sensor do). camera_rgb: `radiance` is camera RGB already (rendered from spectra,
+    twin.camera.spectral), so the crosstalk is not applied again. Returns the (H, W, 3) float64
     mean radiance and the (H, W) mask of photosites saturated in any frame."""
     from twin.camera.sensor import apply_optics, simulate_raw
 
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
         raise ValueError(f"frames must be a positive integer, got {frames!r}")
-    rad = apply_optics(np.asarray(radiance, np.float64), camera, flat_field)
+    rad = apply_optics(np.asarray(radiance, np.float64), camera, flat_field, crosstalk=not camera_rgb)
     t = choose_bracket(float(rad.max()), camera.sensor, n=1, fill=fill)[0]
     total, saturated = np.zeros(rad.shape), np.zeros(rad.shape[:2], bool)
     for k in range(int(frames)):

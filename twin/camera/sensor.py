@@ -373,12 +373,13 @@ def apply_crosstalk(rgb, matrix) -> np.ndarray:
     return (rgb @ M.T).astype(dtype, copy=False)
 
 
-def apply_optics(rgb, camera, flat_field=None) -> np.ndarray:
+def apply_optics(rgb, camera, flat_field=None, crosstalk: bool = True) -> np.ndarray:
     """Crosstalk then vignetting with a `twin.rig.camera.Camera`'s own sensor parameters: the radiance that
-    `simulate_raw` expects for that camera."""
+    `simulate_raw` expects for that camera. crosstalk=False: `rgb` is camera RGB already (a scene rendered from
+    spectra through the camera's own sensitivities, twin.camera.spectral), so only the vignetting is applied."""
     s = camera.sensor
-    return apply_vignetting(apply_crosstalk(rgb, s.crosstalk), camera.K, camera.width, camera.height,
-                            s.vignetting, flat_field)
+    return apply_vignetting(apply_crosstalk(rgb, s.crosstalk) if crosstalk else rgb, camera.K, camera.width,
+                            camera.height, s.vignetting, flat_field)
 
 
 # --- checks ---------------------------------------------------------------------------------------
