@@ -8,8 +8,9 @@ from __future__ import annotations
 import itertools
 import json
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 from .cameras import (CalibrationError, calibrate_intrinsics, calibrated_camera, detect, locate, score)
 
@@ -19,10 +20,14 @@ CAMERA_GOALS = {"rms_px": 0.3, "focal_pct": 0.1}
 FLAT_FIELD_GOAL_PCT = 0.5
 
 
-def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 2, progress: bool = True) -> tuple:
+def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 2, board_scale: int = 1,
+                      progress: bool = True) -> tuple:
     """Photograph a ChArUco board with every camera of the TRUE rig (twin), calibrate each camera from those
     photos alone, and return (the nominal rig with the calibrated cameras, a report per camera scoring it
-    against the truth, with the nominal camera's own errors beside it for comparison)."""
+    against the truth, with the nominal camera's own errors beside it for comparison). board_scale s: the board
+    is photographed by each camera's lens on a sensor of s x s times its pixels (Camera.resized) and the
+    result scaled back: the issue's way for the mini rig, whose 222 x 192 px cameras are too small for corner
+    detection (the paper rig's cameras are the mini rig's at s = 12); rms_px is then in those finer pixels."""
     import numpy as np
 
     from twin.targets.charuco import CharucoTarget, calibration_poses, flat_pose
@@ -31,7 +36,8 @@ def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 
     rng = np.random.default_rng([int(seed), 18])
     size = nominal.sample.max_size * 0.8
     cams, report = {}, {}
-    for name, cam in truth.cameras.items():
+    for name, true_cam in truth.cameras.items():
+        cam = true_cam.resized(board_scale)
         dets = []
         for k, (R, t) in enumerate(calibration_poses(cam, target, truth.sample, views, seed)):
             label = f"{name} view {k}"
@@ -42,11 +48,11 @@ def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 
         Rf, tf = flat_pose(target, truth.sample)
         R, t = locate(detect(target.photo(cam, Rf, tf, rng, supersample=supersample), target, f"{name} flat"),
                       target, intr.K, intr.dist, Rf, tf)
-        cams[name] = calibrated_camera(nominal.cameras[name], intr, R, t)
-        s = score(cam, cams[name], truth.sample, size)
+        cams[name] = calibrated_camera(nominal.cameras[name].resized(board_scale), intr, R, t).resized(1 / board_scale)
+        s = score(true_cam, cams[name], truth.sample, size)
         goals = {"rms_px": intr.rms_px <= CAMERA_GOALS["rms_px"], "focal_pct": s["focal_pct"] <= CAMERA_GOALS["focal_pct"]}
         report[name] = {"views": intr.views, "corners": intr.corners, "rms_px": intr.rms_px, **s,
-                        "nominal_error": score(cam, nominal.cameras[name], truth.sample, size),
+                        "nominal_error": score(true_cam, nominal.cameras[name], truth.sample, size),
                         "goals": goals, "passed": all(goals.values())}
     return replace(nominal, cameras=cams), report
 
@@ -154,12 +160,15 @@ def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int 
 COLOUR_GOALS = {"delta_e2000_median": 1.0, "crosstalk_max": 0.005}  # issue #16: ΔE2000 <= 1 median; ours: 0.5%
 
 
-def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, progress: bool = True) -> tuple:
+def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, step: int = 1, binning: int = 1,
+                     progress: bool = True) -> tuple:
     """Photograph the white plate (each LED channel alone, then white) and a ColorChecker (white) with every
     camera of the TRUE rig, whose colour is `spectra`'s (twin.camera.spectral), and calibrate each camera's
     crosstalk and colour matrix to XYZ from those photos alone (calibration.colour; the cameras and flat fields
-    as the nominal rig has them: calibrated beforehand). Returns (the nominal rig with the calibrated crosstalks,
-    a report per camera scored against the truth, with the nominal crosstalk's own error beside it)."""
+    as the nominal rig has them: calibrated beforehand). The light is every `step`-th upper LED (the white need
+    not be uniform: each patch is divided by the plate at the same pixels), the cameras binned `binning` x
+    `binning`. Returns (the nominal rig with the calibrated crosstalks, a report per camera scored against the
+    truth, with the nominal crosstalk's own error beside it)."""
     import numpy as np
 
     from twin.camera.hdr import still_photo
@@ -169,37 +178,40 @@ def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, progress: 
 
     from .colour import chart_patches, crosstalk_from_photos, delta_e2000, matrix_to_xyz
 
-    upper = np.flatnonzero(~truth.is_bottom)
+    upper = np.flatnonzero(~truth.is_bottom)[::step]
     plate, chart = DiffusePlate(), ColorChecker()
     names, rho = chart.names_and_spectra()
     cams, report = {}, {}
-    for name, cam in truth.cameras.items():
-        known = nominal.camera(name)
+    seen, binned = _binned(truth, binning), _binned(nominal, binning)
+    for name, cam in seen.cameras.items():
+        known = binned.camera(name)
         shots = itertools.count(0, frames)  # each photo its own noise draws
 
         def photo(radiance, camera_rgb=False):
             return still_photo(radiance, cam, seed=seed, frames=frames, first_frame=next(shots), camera_key=name,
-                               flat_field=truth.flat_fields.get(name), camera_rgb=camera_rgb)
+                               flat_field=seen.flat_fields.get(name), camera_rgb=camera_rgb)
 
-        light = sum(plate.radiance(truth, name, upper[i:i + LED_BATCH]).sum(axis=0)
+        light = sum(plate.radiance(seen, name, upper[i:i + LED_BATCH]).sum(axis=0)
                     for i in range(0, len(upper), LED_BATCH))  # LED RGB: every upper LED at full drive
         channel = [photo(light * np.eye(3)[c]) for c in range(3)]
-        M = crosstalk_from_photos([p for p, _ in channel], [m for _, m in channel], known, nominal, plate,
+        M = crosstalk_from_photos([p for p, _ in channel], [m for _, m in channel], known, binned, plate,
                                   label=f"{name}, white plate")
-        white = chart_patches(*photo(light), known, nominal, chart, label=f"{name}, white plate")
-        r = chart_patches(*photo(chart_radiance(chart, truth, spectra, name, upper), camera_rgb=True), known, nominal,
+        white = chart_patches(*photo(light), known, binned, chart, label=f"{name}, white plate")
+        r = chart_patches(*photo(chart_radiance(chart, seen, spectra, name, upper), camera_rgb=True), known, binned,
                           chart, label=f"{name}, ColorChecker") / white * plate.albedo
         # the LEDs' white as a spectroradiometer reads it off the plate where the chart lies: its LED-RGB mix
-        weights = light[chart.patch_map(truth, cam) >= 0].mean(axis=0)
+        weights = light[chart.patch_map(seen, cam) >= 0].mean(axis=0)
         ref = spectra.xyz(rho, weights)
         A = matrix_to_xyz(r, ref)
         dE = delta_e2000(r @ A.T, ref, spectra.xyz(np.ones(rho.shape[1]), weights))
         Mt = np.asarray(cam.sensor.crosstalk, np.float64)
         residual = lambda Mc: float(np.abs(np.linalg.solve(Mc, Mt) - np.eye(3)).max())  # noqa: E731
-        cams[name] = replace(known, sensor=replace(known.sensor, crosstalk=tuple(map(tuple, M.tolist()))))
+        nom = nominal.camera(name)  # unbinned
+        cams[name] = replace(nom, sensor=replace(nom.sensor, crosstalk=tuple(map(tuple, M.tolist()))))
         goals = {"delta_e2000_median": float(np.median(dE)) <= COLOUR_GOALS["delta_e2000_median"],
                  "crosstalk_max": residual(M) <= COLOUR_GOALS["crosstalk_max"]}
-        report[name] = {"photos": 6, "frames_per_photo": frames, "crosstalk": M.tolist(), "true_crosstalk": Mt.tolist(),
+        report[name] = {"photos": 6, "frames_per_photo": frames, "leds_lit": len(upper), "binning": binning,
+                        "camera_pixels": [cam.width, cam.height], "crosstalk": M.tolist(), "true_crosstalk": Mt.tolist(),
                         "crosstalk_residual_max": residual(M),
                         "nominal_error": {"crosstalk_residual_max": residual(np.asarray(known.sensor.crosstalk))},
                         "to_xyz_from_camera_rgb": A.tolist(), "to_xyz_from_led_rgb": (A @ M).tolist(),
@@ -213,85 +225,109 @@ def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, progress: 
     return replace(nominal, cameras=cams), report
 
 
-def cmd_calibrate(args) -> int:
-    import twin
+# a lab's order: each procedure takes the rig the ones before it calibrated (the colour and the LEDs photograph
+# the plate through the calibrated cameras and flat fields; the LEDs' intensities are in the calibrated colour)
+STAGES = ("cameras", "vignetting", "colour", "leds")
+
+
+@dataclass(frozen=True)
+class _Stage:
+    perturb: Callable  # (rig, seed or None) -> the true device with this stage's errors
+    errors: type       # the procedure's own error: named photos, no rig written
+    run: Callable      # (the rig calibrated so far, truth) -> (rig, report per camera)
+    doc: dict          # the settings, for report.json
+    line: Callable     # a camera's report -> its summary line
+
+
+def _stage(what: str, args, nominal, progress: bool) -> _Stage:
     from twin.rig.perturb import perturb_cameras, perturb_leds, perturb_vignetting
 
     from .vignetting import FlatFieldError
 
-    nominal = twin.load_rig(args.rig)
-    if args.frames is None:
-        args.frames = 16 if args.what in ("leds", "colour") else 32
-    progress = not args.no_progress
-    if args.what == "leds":
+    frames = args.frames if args.frames is not None else (16 if what in ("leds", "colour") else 32)
+    seeded = lambda f: (lambda rig, seed: rig if seed is None else f(rig, seed))  # noqa: E731
+    if min(frames, args.led_step, args.binning) < 1:
+        raise ValueError(f"--frames {frames}, --led-step {args.led_step}, --binning {args.binning}: each must be at "
+                         "least 1")
+    if what == "leds":
         from .leds import LEDCalibrationError
-
-        if min(args.frames, args.led_step, args.binning) < 1:
-            raise ValueError(f"--frames {args.frames}, --led-step {args.led_step}, --binning {args.binning}: each "
-                             "must be at least 1")
-        perturb, errors = perturb_leds, LEDCalibrationError
-        run = lambda truth: calibrate_leds_from_plate(nominal, truth, args.frames, args.seed, args.led_step,  # noqa: E731
-                                                      args.binning, progress)
-        doc = {"frames": args.frames, "led_step": args.led_step, "binning": args.binning, "goals": LED_GOALS}
 
         def line(r):
             p, f, n = r["position_mm"], r["profile_shape_pct"], r["nominal_error"]["position_mm"]
             return (f"{r['calibrated']} LEDs: position median {p['median']:.2f} mm (p90 {p['p90']:.2f}, nominal "
                     f"{n['median']:.2f})  normal {r['normal_deg']['median']:.2f} deg  profile {f['median']:.2f}% "
                     f"(p90 {f['p90']:.2f}%)  emission {r['emission_pct']['median']:.2f}%")
-    elif args.what == "colour":
+        return _Stage(seeded(perturb_leds), LEDCalibrationError,
+                      lambda known, truth: calibrate_leds_from_plate(known, truth, frames, args.seed, args.led_step,
+                                                                     args.binning, progress),
+                      {"frames": frames, "led_step": args.led_step, "binning": args.binning, "goals": LED_GOALS}, line)
+    if what == "colour":
         from twin.camera.spectral import device_spectra, with_crosstalk
 
         from .colour import ColourCalibrationError
 
-        if args.frames < 1:
-            raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
         spectra = device_spectra(nominal.cameras, args.perturb)
-        # the truth's colour is always its spectra's (without --perturb, the nominal spectra's crosstalk: the
-        # nominal rigs' identity is an idealised sensor that no real colour filter has)
-        perturb, errors = (lambda rig, seed: with_crosstalk(rig, spectra)), ColourCalibrationError
-        run = lambda truth: calibrate_colour(nominal, truth, spectra, args.frames, args.seed, progress)  # noqa: E731
-        doc = {"frames": args.frames, "goals": COLOUR_GOALS, "spectra": spectra.to_dict()}
 
         def line(r):
             d = r["delta_e2000"]
             return (f"ColorChecker ΔE2000 median {d['median']:.2f} (p90 {d['p90']:.2f}, max {d['max']:.2f})  crosstalk "
                     f"residual {100 * r['crosstalk_residual_max']:.3f}% (nominal rig: "
                     f"{100 * r['nominal_error']['crosstalk_residual_max']:.1f}%)")
-    elif args.what == "vignetting":
-        if args.frames < 1:
-            raise ValueError(f"--frames {args.frames}: at least 1 frame per photo")
-        perturb, errors = perturb_vignetting, FlatFieldError
-        run = lambda truth: calibrate_vignetting(nominal, truth, args.frames, args.seed, progress)  # noqa: E731
-        doc = {"frames": args.frames, "goal": {"flat_field_pct_p95": FLAT_FIELD_GOAL_PCT}}
-
+        # the truth's colour is always its spectra's (without --perturb, the nominal spectra's crosstalk: the
+        # nominal rigs' identity is an idealised sensor that no real colour filter has)
+        return _Stage(lambda rig, seed: with_crosstalk(rig, spectra), ColourCalibrationError,
+                      lambda known, truth: calibrate_colour(known, truth, spectra, frames, args.seed, args.led_step,
+                                                            args.binning, progress),
+                      {"frames": frames, "led_step": args.led_step, "binning": args.binning, "goals": COLOUR_GOALS,
+                       "spectra": spectra.to_dict()}, line)
+    if what == "vignetting":
         def line(r):
             f, m = r["flat_field_pct"], r["radial_model_pct"]
             return (f"flat field: median {f['median']:.3f}%  p95 {f['p95']:.3f}%  max {f['max']:.2f}%   radial model "
                     f"alone: p95 {m['p95']:.3f}%  max {m['max']:.2f}%")
-    else:
-        if args.views < 4:
-            raise ValueError(f"--views {args.views}: the intrinsics need >= 4 views of the board")
-        perturb, errors = perturb_cameras, CalibrationError
-        run = lambda truth: calibrate_cameras(nominal, truth, args.views, args.seed, progress=progress)  # noqa: E731
-        doc = {"views": args.views, "goals": CAMERA_GOALS}
+        return _Stage(seeded(perturb_vignetting), FlatFieldError,
+                      lambda known, truth: calibrate_vignetting(known, truth, frames, args.seed, progress),
+                      {"frames": frames, "goal": {"flat_field_pct_p95": FLAT_FIELD_GOAL_PCT}}, line)
+    if args.views < 4 or args.board_scale < 1:
+        raise ValueError(f"--views {args.views}, --board-scale {args.board_scale}: the intrinsics need >= 4 views of "
+                         "the board, and the scale is at least 1")
 
-        def line(r):
-            return (f"RMS {r['rms_px']:.3f} px  focal {r['focal_pct']:.4f}%  principal {r['principal_px']:.2f} px  "
-                    f"centre {r['centre_mm']:.2f} mm  rotation {r['rotation_deg']:.3f} deg  sample "
-                    f"{r['sample_px_median']:.3f} px median (nominal rig: {r['nominal_error']['sample_px_median']:.2f})")
-    truth = perturb(nominal, args.perturb) if args.perturb is not None or args.what == "colour" else nominal
-    try:
-        rig, report = run(truth)
-    except errors as e:
-        raise ValueError(f"calibration failed, no rig written: {e}") from None
-    _write(Path(args.output), rig, truth, {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed,
-                                           **doc, "cameras": report})
-    w = max(len(n) for n in report)
-    for name, r in report.items():
-        print(f"{name:<{w}}  {line(r)}  {'pass' if r['passed'] else 'FAIL'}")
+    def line(r):
+        return (f"RMS {r['rms_px']:.3f} px  focal {r['focal_pct']:.4f}%  principal {r['principal_px']:.2f} px  "
+                f"centre {r['centre_mm']:.2f} mm  rotation {r['rotation_deg']:.3f} deg  sample "
+                f"{r['sample_px_median']:.3f} px median (nominal rig: {r['nominal_error']['sample_px_median']:.2f})")
+    return _Stage(seeded(perturb_cameras), CalibrationError,
+                  lambda known, truth: calibrate_cameras(known, truth, args.views, args.seed,
+                                                         board_scale=args.board_scale, progress=progress),
+                  {"views": args.views, "board_scale": args.board_scale, "goals": CAMERA_GOALS}, line)
+
+
+def cmd_calibrate(args) -> int:
+    import twin
+
+    nominal = twin.load_rig(args.rig)
+    whats = STAGES if args.what == "all" else (args.what,)
+    stages = {w: _stage(w, args, nominal, not args.no_progress) for w in whats}
+    truth = nominal
+    for st in stages.values():  # the true device has every stage's errors at once
+        truth = st.perturb(truth, args.perturb)
+    rig, reports = nominal, {}
+    for what, st in stages.items():
+        try:
+            rig, reports[what] = st.run(rig, truth)
+        except st.errors as e:
+            raise ValueError(f"calibration failed ({what}), no rig written: {e}") from None
+    head = {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed}
+    doc = ({**head, **stages[args.what].doc, "cameras": reports[args.what]} if args.what != "all" else
+           {**head, "stages": {w: {**st.doc, "cameras": reports[w]} for w, st in stages.items()}})
+    _write(Path(args.output), rig, truth, doc)
+    w = max(len(n) for r in reports.values() for n in r)
+    for what, report in reports.items():
+        for name, r in report.items():
+            tag = f"{what:<10}  " if args.what == "all" else ""
+            print(f"{tag}{name:<{w}}  {stages[what].line(r)}  {'pass' if r['passed'] else 'FAIL'}")
     print(f"calibrated rig: {args.output}/rig (truth: {args.output}/truth, report: {args.output}/report.json)")
-    return 0 if all(r["passed"] for r in report.values()) else 1
+    return 0 if all(r["passed"] for report in reports.values() for r in report.values()) else 1
 
 
 def _write(output: Path, rig, truth, doc: dict) -> None:
@@ -308,18 +344,22 @@ def _write(output: Path, rig, truth, doc: dict) -> None:
 def register(sub) -> None:
     s = sub.add_parser("calibrate", help="calibrate from photographs of targets in the twin; write a calibrated rig "
                        "folder and a report scored against the truth (built: cameras, vignetting, LEDs, colour)")
-    s.add_argument("what", choices=("cameras", "vignetting", "leds", "colour"), help="what to calibrate")
+    s.add_argument("what", choices=(*STAGES, "all"), help="what to calibrate; all: every procedure in turn, each on "
+                   "the rig the ones before it calibrated, against one true device with all their errors")
     s.add_argument("--rig", default="paper", help="built-in rig or rig folder: the nominal values (default: %(default)s)")
     s.add_argument("--perturb", type=int, metavar="SEED", help="the true device is the nominal rig with seeded "
                    "errors (twin.rig.perturb); default: the nominal rig itself")
     s.add_argument("--views", type=int, default=8, help="board poses per camera (default: %(default)s)")
+    s.add_argument("--board-scale", type=int, default=1, help="cameras: photograph the board on a sensor of S x S "
+                   "times the camera's pixels, the same lens, and scale the result back (default: %(default)s; the "
+                   "mini rig's cameras need 12, the paper rig's size)")
     s.add_argument("--seed", type=int, default=0, help="seed of the board poses and the photos' noise (default: "
                    "%(default)s)")
     s.add_argument("--frames", type=int, default=None, help="frames averaged per photo (vignetting: flat-field "
                    "photos, default 32; leds and colour: plate and chart photos, default 16)")
     s.add_argument("--led-step", type=int, default=1, help="leds: calibrate every N-th upper LED, the others keep "
-                   "their nominal values (default: %(default)s, all)")
-    s.add_argument("--binning", type=int, default=1, help="leds: bin the cameras' pixels B x B for the plate photos "
+                   "their nominal values; colour: light every N-th upper LED (default: %(default)s, all)")
+    s.add_argument("--binning", type=int, default=1, help="leds, colour: bin the cameras' pixels B x B for the photos "
                    "(default: %(default)s; the paper rig's 2664 x 2304 photos at 12 give 222 x 192)")
     s.add_argument("-o", "--output", required=True, help="folder for rig/, truth/ and report.json (replaced)")
     s.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
