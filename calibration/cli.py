@@ -306,7 +306,10 @@ def cmd_calibrate(args) -> int:
     import twin
 
     nominal = twin.load_rig(args.rig)
-    whats = STAGES if args.what == "all" else (args.what,)
+    if "all" in args.what and len(args.what) > 1 or len(set(args.what)) < len(args.what):
+        raise ValueError(f"calibrate {' '.join(args.what)}: name each procedure once, or 'all' alone")
+    whats = STAGES if args.what == ["all"] else tuple(w for w in STAGES if w in args.what)  # in the lab's order
+    single = len(whats) == 1
     stages = {w: _stage(w, args, nominal, not args.no_progress) for w in whats}
     truth = nominal
     for st in stages.values():  # the true device has every stage's errors at once
@@ -318,13 +321,13 @@ def cmd_calibrate(args) -> int:
         except st.errors as e:
             raise ValueError(f"calibration failed ({what}), no rig written: {e}") from None
     head = {"rig": nominal.name, "perturb_seed": args.perturb, "seed": args.seed}
-    doc = ({**head, **stages[args.what].doc, "cameras": reports[args.what]} if args.what != "all" else
+    doc = ({**head, **stages[whats[0]].doc, "cameras": reports[whats[0]]} if single else
            {**head, "stages": {w: {**st.doc, "cameras": reports[w]} for w, st in stages.items()}})
     _write(Path(args.output), rig, truth, doc)
     w = max(len(n) for r in reports.values() for n in r)
     for what, report in reports.items():
         for name, r in report.items():
-            tag = f"{what:<10}  " if args.what == "all" else ""
+            tag = "" if single else f"{what:<10}  "
             print(f"{tag}{name:<{w}}  {stages[what].line(r)}  {'pass' if r['passed'] else 'FAIL'}")
     print(f"calibrated rig: {args.output}/rig (truth: {args.output}/truth, report: {args.output}/report.json)")
     return 0 if all(r["passed"] for report in reports.values() for r in report.values()) else 1
@@ -344,8 +347,9 @@ def _write(output: Path, rig, truth, doc: dict) -> None:
 def register(sub) -> None:
     s = sub.add_parser("calibrate", help="calibrate from photographs of targets in the twin; write a calibrated rig "
                        "folder and a report scored against the truth (built: cameras, vignetting, LEDs, colour)")
-    s.add_argument("what", choices=(*STAGES, "all"), help="what to calibrate; all: every procedure in turn, each on "
-                   "the rig the ones before it calibrated, against one true device with all their errors")
+    s.add_argument("what", nargs="+", choices=(*STAGES, "all"), help="what to calibrate. Several (or all): each "
+                   "in the order cameras, vignetting, colour, leds, on the rig the ones before it calibrated, against "
+                   "one true device with all their errors")
     s.add_argument("--rig", default="paper", help="built-in rig or rig folder: the nominal values (default: %(default)s)")
     s.add_argument("--perturb", type=int, metavar="SEED", help="the true device is the nominal rig with seeded "
                    "errors (twin.rig.perturb); default: the nominal rig itself")

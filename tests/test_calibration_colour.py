@@ -152,3 +152,33 @@ def test_with_crosstalk_changes_only_the_crosstalk(rig):
     t = with_crosstalk(rig, device_spectra(rig.cameras, 1))
     for n in rig.cameras:
         assert replace(t.camera(n).sensor, crosstalk=rig.camera(n).sensor.crosstalk) == rig.camera(n).sensor
+
+
+def test_calibrate_several_procedures_in_a_labs_order(tmp_path, rig):
+    """`hemicube calibrate leds colour vignetting`: run in the lab's order (vignetting, colour, LEDs) against ONE
+    true device with all three perturbations (seed 12, held back), each on the rig the ones before calibrated.
+    Every stage meets its goals, and the written rig carries all three results. (`all` adds the cameras, which
+    the mini rig calibrates at --board-scale 12: 4 minutes, measured in docs/calibration.md, not here.)"""
+    from twin.rig.perturb import perturb_leds, perturb_vignetting
+
+    out = tmp_path / "cal"
+    r = subprocess.run([sys.executable, "-m", "hemicube.cli", "calibrate", "leds", "colour", "vignetting", "--rig",
+                        "mini", "--perturb", "12", "--led-step", "36", "-o", str(out),
+                        "--no-progress"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert list(rep["stages"]) == ["vignetting", "colour", "leds"]
+    assert all(c["passed"] for st in rep["stages"].values() for c in st["cameras"].values())
+    lines = r.stdout.splitlines()
+    assert [ln.split()[0] for ln in lines[:-1]] == ["vignetting"] * 2 + ["colour"] * 2 + ["leds"]
+    truth = perturb_leds(with_crosstalk(perturb_vignetting(rig, 12), device_spectra(rig.cameras, 12)), 12)
+    assert twin.load_rig(str(out / "truth")).digest() == truth.digest()
+    cal = twin.load_rig(str(out / "rig"))
+    for name, c in rep["stages"]["colour"]["cameras"].items():
+        assert cal.camera(name).sensor.crosstalk == tuple(map(tuple, c["crosstalk"]))
+        assert cal.camera(name).sensor.vignetting == tuple(rep["stages"]["vignetting"]["cameras"][name]["radial"])
+    assert not np.array_equal(cal.led_positions, rig.led_positions)
+    bad = subprocess.run([sys.executable, "-m", "hemicube.cli", "calibrate", "all", "leds", "-o", str(tmp_path / "x")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "name each procedure once, or 'all' alone" in bad.stderr
+    assert not (tmp_path / "x").exists()
