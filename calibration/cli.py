@@ -108,32 +108,39 @@ def _binned(rig, b: int):
 
 
 def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int = 1, binning: int = 1,
-                              progress: bool = True) -> tuple:
+                              progress: bool = True, bottom: bool = False) -> tuple:
     """Photograph a diffuse plate (twin.targets.diffuse) with both cameras of the TRUE rig, at the two heights
     PLATE_HEIGHTS_MM, each upper LED alone (every `step`-th: a quicker run; the others keep their nominal
     values), `frames` frames per photo, with the cameras binned `binning` x `binning` (the LEDs' light over the
     plate is smooth; the paper rig's 6 MP photos need not be read whole), and calibrate the LEDs from those photos
     alone (calibration.leds; the cameras, their flat fields and colour matrices as the nominal rig has them:
-    calibrated beforehand). Returns (the nominal rig with the calibrated LEDs, a report scored against the
-    truth, with the nominal rig's own errors beside it)."""
+    calibrated beforehand). bottom: the bottom LEDs instead, each alone, through the empty holder's acrylic
+    (one height); those whose light's crest the photos do not see (calibration.leds.crest_seen) keep their
+    nominal values. Returns (the nominal rig with the calibrated LEDs, a report scored against the truth, with
+    the nominal rig's own errors beside it)."""
     import numpy as np
 
     from twin.camera.hdr import still_photo
     from twin.targets.diffuse import DiffusePlate
 
-    from .leds import calibrate_leds, plate_samples, plate_view, score_leds
+    from .leds import calibrate_leds, crest_seen, plate_samples, plate_view, score_leds
 
-    upper = np.flatnonzero(~truth.is_bottom)[::step]
-    samples = {int(led): [] for led in upper}
+    chosen = np.flatnonzero(truth.is_bottom if bottom else ~truth.is_bottom)[::step]
+    plates = [DiffusePlate(transparency=1.0)] if bottom else [DiffusePlate(height_mm=h) for h in PLATE_HEIGHTS_MM]
+    beyond = []
+    if bottom:
+        seen_crest = crest_seen(nominal, chosen, plates[0].size_mm / 2)
+        chosen, beyond = chosen[seen_crest], chosen[~seen_crest].tolist()
+    samples = {int(led): [] for led in chosen}
     shot = 0
     seen, known = _binned(truth, binning), _binned(nominal, binning)
     for cam_name in truth.cameras:
         cam, cal_cam = seen.camera(cam_name), known.camera(cam_name)
-        for h in PLATE_HEIGHTS_MM:
-            plate = DiffusePlate(height_mm=h)
+        for plate in plates:
             view = plate_view(cal_cam, known, plate)  # the same for every photo of this plate by this camera
-            for i in range(0, len(upper), LED_BATCH):
-                batch = upper[i:i + LED_BATCH]
+            what = "the acrylic" if bottom else f"plate at {plate.height_mm:g} mm"
+            for i in range(0, len(chosen), LED_BATCH):
+                batch = chosen[i:i + LED_BATCH]
                 for led, rad in zip(batch, plate.radiance(seen, cam_name, batch)):
                     if not rad.max() > 0:
                         continue  # the LED does not reach the plate at this height (a side LED below it)
@@ -141,20 +148,23 @@ def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int 
                                              camera_key=cam_name, flat_field=seen.flat_fields.get(cam_name))
                     shot += 1
                     samples[int(led)].append(plate_samples(photo, sat, cal_cam, known, plate, view=view,
-                                                           label=f"{cam_name}, plate at {h:g} mm, LED {led}"))
+                                                           label=f"{cam_name}, {what}, LED {led}"))
             if progress:
-                print(f"[calibrate] {cam_name}: plate at {h:g} mm, {len(upper)} LEDs", file=sys.stderr, flush=True)
-    fit = calibrate_leds(nominal, samples, plate.albedo)
+                print(f"[calibrate] {cam_name}: {what}, {len(chosen)} LEDs", file=sys.stderr, flush=True)
+    albedo = nominal.bottom.acrylic_transmission if bottom else plates[0].albedo
+    fit = calibrate_leds(nominal, samples, albedo, bottom=bottom)
     rig = fit.apply(nominal)
     s = score_leds(rig, truth, fit.index)
     goals = {"position_mm_median": s["position_mm"]["median"] <= LED_GOALS["position_mm_median"],
              "profile_shape_pct_median": s["profile_shape_pct"]["median"] <= LED_GOALS["profile_shape_pct_median"]}
+    target = ({"target": "the empty holder's acrylic, lit from below", "crest_not_seen": beyond} if bottom else
+              {"plate_heights_mm": list(PLATE_HEIGHTS_MM)})
     report = {"photos": shot, "frames_per_photo": frames, "led_step": step, "binning": binning,
-              "camera_pixels": {n: [c.width, c.height] for n, c in seen.cameras.items()}, "plate_heights_mm": list(PLATE_HEIGHTS_MM),
+              "camera_pixels": {n: [c.width, c.height] for n, c in seen.cameras.items()}, **target,
               "calibrated": int(fit.index.size), "skipped": fit.skipped, "fit_rms_log": float(np.median(fit.rms_log)),
               **s, "nominal_error": score_leds(nominal, truth, fit.index), "goals": goals,
               "passed": all(goals.values())}
-    return rig, {"leds": report}
+    return rig, {"bottom" if bottom else "leds": report}
 
 
 COLOUR_GOALS = {"delta_e2000_median": 1.0, "crosstalk_max": 0.005}  # issue #16: ΔE2000 <= 1 median; ours: 0.5%
@@ -227,7 +237,7 @@ def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, step: int 
 
 # a lab's order: each procedure takes the rig the ones before it calibrated (the colour and the LEDs photograph
 # the plate through the calibrated cameras and flat fields; the LEDs' intensities are in the calibrated colour)
-STAGES = ("cameras", "vignetting", "colour", "leds")
+STAGES = ("cameras", "vignetting", "colour", "leds", "bottom")
 
 
 @dataclass(frozen=True)
@@ -249,7 +259,7 @@ def _stage(what: str, args, nominal, progress: bool) -> _Stage:
     if min(frames, args.led_step, args.binning) < 1:
         raise ValueError(f"--frames {frames}, --led-step {args.led_step}, --binning {args.binning}: each must be at "
                          "least 1")
-    if what == "leds":
+    if what in ("leds", "bottom"):
         from .leds import LEDCalibrationError
 
         def line(r):
@@ -257,9 +267,10 @@ def _stage(what: str, args, nominal, progress: bool) -> _Stage:
             return (f"{r['calibrated']} LEDs: position median {p['median']:.2f} mm (p90 {p['p90']:.2f}, nominal "
                     f"{n['median']:.2f})  normal {r['normal_deg']['median']:.2f} deg  profile {f['median']:.2f}% "
                     f"(p90 {f['p90']:.2f}%)  emission {r['emission_pct']['median']:.2f}%")
-        return _Stage(seeded(perturb_leds), LEDCalibrationError,
+        bottom = what == "bottom"
+        return _Stage(seeded(lambda rig, seed: perturb_leds(rig, seed, bottom=bottom)), LEDCalibrationError,
                       lambda known, truth: calibrate_leds_from_plate(known, truth, frames, args.seed, args.led_step,
-                                                                     args.binning, progress),
+                                                                     args.binning, progress, bottom=bottom),
                       {"frames": frames, "led_step": args.led_step, "binning": args.binning, "goals": LED_GOALS}, line)
     if what == "colour":
         from twin.camera.spectral import device_spectra, with_crosstalk
@@ -360,11 +371,12 @@ def register(sub) -> None:
     s.add_argument("--seed", type=int, default=0, help="seed of the board poses and the photos' noise (default: "
                    "%(default)s)")
     s.add_argument("--frames", type=int, default=None, help="frames averaged per photo (vignetting: flat-field "
-                   "photos, default 32; leds and colour: plate and chart photos, default 16)")
-    s.add_argument("--led-step", type=int, default=1, help="leds: calibrate every N-th upper LED, the others keep "
-                   "their nominal values; colour: light every N-th upper LED (default: %(default)s, all)")
-    s.add_argument("--binning", type=int, default=1, help="leds, colour: bin the cameras' pixels B x B for the photos "
-                   "(default: %(default)s; the paper rig's 2664 x 2304 photos at 12 give 222 x 192)")
+                   "and acrylic photos, default 32; leds and colour: plate and chart photos, default 16)")
+    s.add_argument("--led-step", type=int, default=1, help="leds, bottom: calibrate every N-th upper (bottom) LED, "
+                   "the others keep their nominal values; colour: light every N-th upper LED (default: %(default)s, "
+                   "all)")
+    s.add_argument("--binning", type=int, default=1, help="leds, bottom, colour: bin the cameras' pixels B x B for "
+                   "the photos (default: %(default)s; the paper rig's 2664 x 2304 photos at 12 give 222 x 192)")
     s.add_argument("-o", "--output", required=True, help="folder for rig/, truth/ and report.json (replaced)")
     s.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
     s.set_defaults(func=cmd_calibrate)

@@ -39,14 +39,10 @@ class ColourCalibrationError(ValueError):
 
 
 def _check(photo, saturated, camera, label) -> tuple[np.ndarray, np.ndarray]:
-    photo = np.asarray(photo, np.float64)
-    if photo.shape != (camera.height, camera.width, 3):
-        raise ColourCalibrationError(f"{label}: photo is {photo.shape}, camera {camera.name!r} gives "
-                                     f"({camera.height}, {camera.width}, 3)")
-    if not np.isfinite(photo).all():
-        raise ColourCalibrationError(f"{label}: photo contains NaN or Inf")
-    sat = np.zeros(photo.shape[:2], bool) if saturated is None else np.asarray(saturated, bool)
-    return photo, sat
+    from .photos import checked_photo
+
+    photo = checked_photo(photo, camera, label, ColourCalibrationError)
+    return photo, np.zeros(photo.shape[:2], bool) if saturated is None else np.asarray(saturated, bool)
 
 
 def crosstalk_from_photos(photos, saturated, camera, rig, plate, label: str = "plate") -> np.ndarray:

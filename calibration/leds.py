@@ -37,7 +37,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["LEDCalibrationError", "LEDFit", "PlateView", "plate_view", "plate_samples", "calibrate_leds", "score_leds", "MIN_BLOCKS"]
+__all__ = ["LEDCalibrationError", "LEDFit", "PlateView", "plate_view", "plate_samples", "calibrate_leds", "crest_seen",
+           "score_leds", "MIN_BLOCKS"]
 
 MIN_BLOCKS = 40  # usable blocks over both heights below which an LED is not calibrated
 DARK_FRACTION = 0.05  # blocks below this fraction of the photo's brightest block are dropped
@@ -123,12 +124,9 @@ def plate_samples(photo, saturated, camera, rig, plate, *, block: int = 4, label
     made once for the many photos of one camera and plate (else made here)."""
     from twin.camera.correction import apply_colour_matrix
 
-    photo = np.asarray(photo, np.float64)
-    if photo.shape != (camera.height, camera.width, 3):
-        raise LEDCalibrationError(f"{label}: photo is {photo.shape}, camera {camera.name!r} gives "
-                                  f"({camera.height}, {camera.width}, 3)")
-    if not np.isfinite(photo).all():
-        raise LEDCalibrationError(f"{label}: photo contains NaN or Inf")
+    from .photos import checked_photo
+
+    photo = checked_photo(photo, camera, label, LEDCalibrationError)
     view = view or plate_view(camera, rig, plate, block)
     b = view.block
     flat, C = view.calibration
@@ -217,14 +215,31 @@ def _fit_one(X, L, z, albedo, p0, n0, k0):
     return p, n, float(k), np.exp(logI), rms
 
 
-def calibrate_leds(rig, samples: dict, albedo: float) -> LEDFit:
+def crest_seen(rig, leds, half_mm: float) -> np.ndarray:
+    """(K,) True for the bottom LEDs `leds` whose light's crest the photos of a square of half-side `half_mm` on
+    the sample plane see: the LED's foot on the plane within that square grown by the LED's depth below it (its
+    glow falls to ~1/3 at a depth's distance). Elsewhere only the glow's tail is seen, and a LED's distance and
+    profile exponent trade off along it (measured, mini rig, 64 frames, both cameras: position 0.02-0.08 mm
+    within, 0.4-2.6 mm beyond)."""
+    o, z = np.asarray(rig.sample.origin, np.float64), np.asarray(rig.sample.normal, np.float64)
+    ax, ay = np.asarray(rig.sample.x_axis, np.float64), np.asarray(rig.sample.y_axis, np.float64)
+    d = rig.leds.positions[np.asarray(leds)] - o
+    reach = half_mm + np.abs(d @ z)
+    return (np.abs(d @ ax) <= reach) & (np.abs(d @ ay) <= reach)
+
+
+def calibrate_leds(rig, samples: dict, albedo: float, bottom: bool = False) -> LEDFit:
     """The LEDs of `samples` ({led index: [(X, L) per photo]}, plate_samples of the photos of the plate of
-    `albedo` lit by that LED alone) calibrated as the module docstring says, starting from `rig`'s values."""
+    `albedo` lit by that LED alone) calibrated as the module docstring says, starting from `rig`'s values.
+    bottom: bottom LEDs photographed through the empty holder's acrylic (DiffusePlate(transparency=1)): the
+    same model with the plate's normal facing down and `albedo` the acrylic's transmission (the forward
+    model's Lambertian transmission, twin.optics.lumitexel), one height (the acrylic cannot be lifted: the
+    glow's width and tail fix the distance, tested noise-free), no frame shadows (the frame stands above)."""
     leds = rig.leds
     if rig.led_profile != "cosine":
         raise LEDCalibrationError(f"the LED calibration fits the cosine profile family; rig {rig.name!r} uses "
                                   f"{rig.led_profile!r}")
-    z = np.asarray(rig.sample.normal, np.float64)
+    z = np.asarray(rig.sample.normal, np.float64) * (-1.0 if bottom else 1.0)
     origin = np.asarray(rig.sample.origin, np.float64)
     data, skipped = {}, []
     for led, photos in samples.items():
@@ -233,12 +248,13 @@ def calibrate_leds(rig, samples: dict, albedo: float) -> LEDFit:
         top = max((float(v.mean(axis=1).max()) for _, v in photos if len(v)), default=0.0)
         photos = [(x, v) for x, v in photos if len(v) and v.mean(axis=1).max() >= GRAZING_FRACTION * top
                   and _elevation_deg(leds.positions[led], x, origin, z) >= MIN_ELEVATION_DEG]
-        photos = [(x[~s], v[~s]) for x, v in photos for s in [_shadowed(rig, leds.positions[led], x)]]
+        if not bottom:
+            photos = [(x[~s], v[~s]) for x, v in photos for s in [_shadowed(rig, leds.positions[led], x)]]
         heights = {round(float((x[0, 0] - origin) @ z), 1) for x, _ in photos if len(x)}
         n = sum(len(x) for x, _ in photos)
-        # the distance needs both heights (measured: the lowest LEDs of the mini rig, lit usefully at one
-        # height only, came out up to 100 mm off)
-        if len(heights) < 2 or n < MIN_BLOCKS:
+        # an upper LED's distance needs both heights (measured: the lowest LEDs of the mini rig, lit usefully at
+        # one height only, came out up to 100 mm off)
+        if len(heights) < (1 if bottom else 2) or n < MIN_BLOCKS:
             skipped.append(int(led))
             continue
         data[led] = (np.concatenate([x for x, _ in photos]), np.concatenate([v for _, v in photos]))

@@ -158,7 +158,7 @@ def test_calibrate_several_procedures_in_a_labs_order(tmp_path, rig):
     """`hemicube calibrate leds colour vignetting`: run in the lab's order (vignetting, colour, LEDs) against ONE
     true device with all three perturbations (seed 12, held back), each on the rig the ones before calibrated.
     Every stage meets its goals, and the written rig carries all three results. (`all` adds the cameras, which
-    the mini rig calibrates at --board-scale 12: 4 minutes, measured in docs/calibration.md, not here.)"""
+    the mini rig calibrates at --board-scale 12, and the bottom LEDs: minutes, in docs/calibration.md.)"""
     from twin.rig.perturb import perturb_leds, perturb_vignetting
 
     out = tmp_path / "cal"

@@ -16,13 +16,13 @@ model (1 + a r^2 + b r^4 + c r^6), so that a flat-field calibration has more to 
 - dust on the sensor window: 2-6 soft shadows, Gaussian, sigma U(1, 2.5)% of the width, U(1, 4)% deep.
 The rig keeps the radial part in each camera's `vignetting` and the other two as its per-pixel map
 (`Rig.flat_fields`), so that a capture with it renders the whole falloff.
-LEDs (`perturb_leds`), the upper LEDs only (the bottom LEDs light the sample through the acrylic and are not
-calibrated from above): positions N(0, 3 mm) per axis (the issue's figure: a hand-assembled board's LEDs, each
+LEDs (`perturb_leds`), the upper LEDs, or with bottom=True the bottom LEDs (an independent draw): positions N(0, 3 mm) per axis (the issue's figure: a hand-assembled board's LEDs, each
 placed on its own; redrawn where two would overlap); each board turned by N(0, 0.5 deg) about each axis about its centre, moving its LEDs'
 normals, plus a N(0, 1 deg) tilt of every LED (soldered crooked); the angular profile cos^p with p = the
 nominal p x U(0.8, 1.2) per board (the issue's +-20%) x N(1, 2%) per LED, so that the truth is richer than a
 profile fitted per board; RGB intensity x U(0.9, 1.1) per LED and channel (the issue's +-10%). The rig must use
-the "cosine" profile family. Colour: not yet.
+the "cosine" profile family. Colour: twin.camera.spectral.device_spectra (a device's spectra, from which its
+cameras' crosstalk follows).
 """
 from __future__ import annotations
 
@@ -107,17 +107,13 @@ def _apart(p: np.ndarray, rng) -> np.ndarray:
     raise RuntimeError("could not place the perturbed LEDs apart")
 
 
-def perturb_leds(rig, seed: int):
-    """The rig with its upper LEDs' positions, normals, profiles and intensities drawn as the module docstring
-    says, from `seed` alone."""
-    if rig.led_profile != "cosine":
-        raise ValueError(f"perturb_leds draws cosine-profile exponents; rig {rig.name!r} uses {rig.led_profile!r}")
-    rng = np.random.default_rng([int(seed), 16])
-    leds = rig.leds
+def _perturb_boards(leds, bottom: bool, rng):
+    """(positions, normals, profile, intensity) with the upper (bottom=False) or the bottom boards' LEDs drawn
+    as the module docstring says."""
     pos, nrm = leds.positions.copy(), leds.normals.copy()
     prof, inten = leds.profile.copy(), leds.intensity.copy()
-    for b in np.unique(leds.board[~leds.is_bottom]):
-        sel = np.flatnonzero((leds.board == b) & ~leds.is_bottom)
+    for b in np.unique(leds.board[leds.is_bottom == bottom]):
+        sel = np.flatnonzero((leds.board == b) & (leds.is_bottom == bottom))
         R = _rotation(np.radians(rng.normal(0.0, 0.5, 3)))
         c = pos[sel].mean(axis=0)
         pos[sel] = (pos[sel] - c) @ R.T + c
@@ -127,5 +123,14 @@ def perturb_leds(rig, seed: int):
         nrm[sel] = n / np.linalg.norm(n, axis=1, keepdims=True)
         prof[sel, 0] *= rng.uniform(0.8, 1.2) * rng.normal(1.0, 0.02, sel.size)
         inten[sel] *= rng.uniform(0.9, 1.1, (sel.size, 3))
-    new = replace(leds, positions=pos, normals=nrm, profile=prof, intensity=inten)
-    return replace(rig, leds=new)
+    return pos, nrm, prof, inten
+
+
+def perturb_leds(rig, seed: int, bottom: bool = False):
+    """The rig with its upper LEDs' (bottom=True: its bottom LEDs') positions, normals, profiles and intensities
+    drawn as the module docstring says, from `seed` alone (the two draws are independent)."""
+    if rig.led_profile != "cosine":
+        raise ValueError(f"perturb_leds draws cosine-profile exponents; rig {rig.name!r} uses {rig.led_profile!r}")
+    rng = np.random.default_rng([int(seed), 20 if bottom else 16])
+    pos, nrm, prof, inten = _perturb_boards(rig.leds, bottom, rng)
+    return replace(rig, leds=replace(rig.leds, positions=pos, normals=nrm, profile=prof, intensity=inten))

@@ -32,6 +32,9 @@ class DiffusePlate:
     albedo: float = 0.8        # diffuse reflectance, grey (a white ceramic tile; Spectralon is 0.99)
     size_mm: float = 140.0     # side of the square plate, centred on the sample plane's origin
     height_mm: float = 0.0     # lifted this far along the sample plane's normal (0: lying on the sample plane)
+    # 1: no plate at all, the empty holder's diffusing acrylic, which the bottom LEDs light from below (paper
+    # §5; the forward model's Lambertian transmission, twin.optics.lumitexel); the albedo then plays no part
+    transparency: float = 0.0
 
     def __post_init__(self):
         if not (np.isfinite(self.albedo) and 0 < self.albedo <= 1):
@@ -40,6 +43,9 @@ class DiffusePlate:
             raise ValueError(f"DiffusePlate.size_mm must be positive, got {self.size_mm}")
         if not (np.isfinite(self.height_mm) and self.height_mm >= 0):
             raise ValueError(f"DiffusePlate.height_mm must be >= 0, got {self.height_mm}")
+        if self.transparency not in (0.0, 1.0) or (self.transparency and self.height_mm):
+            raise ValueError(f"DiffusePlate.transparency is 0 (a plate) or 1 (the empty holder's acrylic, at height "
+                             f"0), got {self.transparency} at {self.height_mm} mm")
 
     def origin(self, rig) -> np.ndarray:
         return np.asarray(rig.sample.origin, np.float64) + self.height_mm * np.asarray(rig.sample.normal, np.float64)
@@ -72,7 +78,8 @@ class DiffusePlate:
         tangent = np.broadcast_to(np.asarray(rig.sample.x_axis, np.float32), (n, 3))
         m = lumitexels(sub, P, normal, tangent, np.full((n, 3), self.albedo, np.float32), np.zeros((n, 3), np.float32),
                             np.full(n, 0.5, np.float32), np.full(n, 0.5, np.float32), convention="physical",
-                            camera=camera_name, transparency=np.zeros(n, np.float32), visibility=True, device=device)
+                            camera=camera_name, transparency=np.full(n, self.transparency, np.float32), visibility=True,
+                            device=device)
         out = np.zeros((len(leds), cam.height * cam.width, 3))
         out[:, inside] = np.moveaxis(m, 1, 0)
         return out.reshape(len(leds), cam.height, cam.width, 3)
