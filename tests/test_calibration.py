@@ -82,6 +82,22 @@ def test_bad_photos_are_named():
         detect(np.zeros((40, 50, 3), np.float32), target, "rgb")
 
 
+def test_an_out_of_focus_board_is_named():
+    """A board photo blurred by a Gaussian of 3 px (OpenCV still finds its corners) is refused, naming the photo;
+    the same photo in focus passes."""
+    import cv2
+
+    from twin.targets.charuco import calibration_poses
+
+    rig = twin.load_rig("paper")
+    cam, target = rig.camera("primary"), CharucoTarget()
+    R, t = next(iter(calibration_poses(cam, target, rig.sample, 4, 0)))
+    img = target.photo(cam, R, t, np.random.default_rng(0), supersample=1)
+    assert len(detect(img, target, "sharp").ids) > 20
+    with pytest.raises(CalibrationError, match=r"^soft: the board is out of focus \(edge sharpness 0\.1"):
+        detect(cv2.GaussianBlur(img, (0, 0), 3), target, "soft")
+
+
 def test_cli_refuses_too_few_views(tmp_path, capsys):
     from hemicube.cli import main
 
