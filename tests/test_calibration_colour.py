@@ -129,7 +129,7 @@ def test_calibrate_colour_on_a_perturbed_mini_rig(tmp_path, rig):
     with the calibrated crosstalks and nothing else changed."""
     out = tmp_path / "cal"
     r = subprocess.run([sys.executable, "-m", "hemicube.cli", "calibrate", "colour", "--rig", "mini", "--perturb",
-                        "11", "--frames", "8", "-o", str(out), "--no-progress"], capture_output=True, text=True)
+                        "11", "--frames", "8", "-o", str(out), "--no-progress", "--validate"], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["spectra"] == device_spectra(rig.cameras, 11).to_dict()
@@ -164,7 +164,7 @@ def test_calibrate_several_procedures_in_a_labs_order(tmp_path, rig):
     out = tmp_path / "cal"
     r = subprocess.run([sys.executable, "-m", "hemicube.cli", "calibrate", "leds", "colour", "vignetting", "--rig",
                         "mini", "--perturb", "12", "--led-step", "36", "-o", str(out),
-                        "--no-progress"], capture_output=True, text=True)
+                        "--no-progress", "--validate"], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
     rep = json.loads((out / "report.json").read_text())
     assert list(rep["stages"]) == ["vignetting", "colour", "leds"]
@@ -182,3 +182,17 @@ def test_calibrate_several_procedures_in_a_labs_order(tmp_path, rig):
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "name each procedure once, or 'all' alone" in bad.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_validate_makes_a_missed_goal_the_exit_status(tmp_path, monkeypatch, capsys):
+    """A calibration that misses a goal (here: a goal no calibration meets) writes its rig and report and exits
+    0; with --validate it exits 1. Both print FAIL."""
+    import calibration.cli as cli
+    from hemicube.cli import main
+
+    monkeypatch.setitem(cli.COLOUR_GOALS, "delta_e2000_median", 1e-6)
+    args = ["calibrate", "colour", "--rig", "mini", "--frames", "2", "--led-step", "12", "--no-progress"]
+    assert main([*args, "-o", str(tmp_path / "a")]) == 0
+    assert main([*args, "--validate", "-o", str(tmp_path / "b")]) == 1
+    assert capsys.readouterr().out.count("FAIL") == 4
+    assert (tmp_path / "a" / "rig").is_dir() and (tmp_path / "b" / "report.json").is_file()

@@ -195,7 +195,7 @@ def test_calibrate_bottom_leds_cli(tmp_path):
 
     out = tmp_path / "cal"
     r = subprocess.run([sys.executable, "-m", "hemicube.cli", "calibrate", "bottom", "--rig", "mini", "--perturb", "11",
-                        "-o", str(out), "--no-progress"], capture_output=True, text=True)
+                        "-o", str(out), "--no-progress", "--validate"], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
     rep = json.loads((out / "report.json").read_text())["cameras"]["bottom"]
     assert rep["passed"] and rep["calibrated"] >= 8

@@ -63,7 +63,7 @@ def test_calibrated_rig_is_written_and_reads_back(tmp_path, capsys, calibrated):
     from hemicube.cli import main
 
     assert main(["calibrate", "vignetting", "--rig", "mini", "--perturb", "13", "--frames", "8",
-                 "--no-progress", "-o", str(tmp_path / "out")]) == 0
+                 "--no-progress", "--validate", "-o", str(tmp_path / "out")]) == 0
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     rig = twin.load_rig(str(tmp_path / "out" / "rig"))
     truth = twin.load_rig(str(tmp_path / "out" / "truth"))
