@@ -118,17 +118,22 @@ def test_cli_writes_nothing_on_a_bad_setting(tmp_path, capsys):
     assert "--led-step" in capsys.readouterr().err and not (tmp_path / "cal").exists()
 
 
-def test_an_led_calibration_is_the_same_device():
-    """Rig.layout_digest, which `hemicube capture --truth` checks: a rig whose LEDs were calibrated (moved,
-    tilted, re-profiled, re-weighted) is the same device; one whose camera moved, or with other LEDs, is not."""
+def test_a_calibration_is_the_same_device():
+    """Rig.layout_digest, which `hemicube capture --truth` checks: a rig whose LEDs (moved, tilted, re-profiled,
+    re-weighted) or cameras (lens and pose) were calibrated is the same device; one with other LEDs, or a camera
+    of another pixel grid, is not."""
+    from dataclasses import replace
+
     from twin.rig.perturb import perturb_cameras
 
     nominal = twin.load_rig("paper")
     truth = perturb_leds(nominal, 3)
     assert truth.geometry_digest() != nominal.geometry_digest()
     assert truth.layout_digest() == nominal.layout_digest()
-    assert perturb_cameras(nominal, 3).layout_digest() != nominal.layout_digest()
+    assert perturb_cameras(nominal, 3).layout_digest() == nominal.layout_digest()
     assert twin.load_rig("mini").layout_digest() != nominal.layout_digest()
+    binned = replace(nominal, cameras={n: c.resized(0.5) for n, c in nominal.cameras.items()})
+    assert binned.layout_digest() != nominal.layout_digest()
 
 
 # --- the bottom LEDs: through the empty holder's acrylic, one height ----------------------------------------

@@ -134,13 +134,12 @@ def test_a_vignetting_calibration_keeps_the_network_and_patterns(calibrated):
 def test_capture_renders_the_truth_and_records_the_calibration(calibrated, tmp_path):
     """`hemicube capture --truth`: the simulator renders with the true device while the folder records the
     calibrated rig, as a real device's capture records its calibration. The photos are those of the truth
-    (same bytes as a capture recording the truth itself), and a truth of another geometry is refused."""
+    (same bytes as a capture recording the truth itself), and another device as the truth is refused."""
     from twin.capture.plan import build_patterns, paper_plan
     from twin.capture.runner import CaptureError, capture, open_backends, photos
     from twin.materials.samples import load_sample
-    from twin.rig.perturb import perturb_cameras
 
-    nominal, truth, rig, _ = calibrated
+    _, truth, rig, _ = calibrated
     maps = load_sample("ramps", resolution=32)
     patterns = build_patterns(rig)
     todo = [p for p in paper_plan(rig, patterns) if p.pattern == "uniform"]
@@ -150,5 +149,5 @@ def test_capture_renders_the_truth_and_records_the_calibration(calibrated, tmp_p
             raws.append([r.numpy().copy() for _, r, _, _ in photos(recorded, sims, patterns, todo, "cpu")])
     assert all(np.array_equal(a, b) for a, b in zip(*raws))
     with pytest.raises(CaptureError, match="is not a calibration of it"):
-        capture(rig, "ramps", tmp_path / "cap", truth=perturb_cameras(nominal, 1), resolution=32, progress=False)
+        capture(rig, "ramps", tmp_path / "cap", truth=twin.load_rig("paper"), resolution=32, progress=False)
     assert not (tmp_path / "cap").exists()

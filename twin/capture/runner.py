@@ -130,8 +130,8 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
     (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
     calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must be
-    `rig`'s device (Rig.layout_digest): differ only in how the cameras record light and in the LEDs' positions,
-    normals, profiles and intensities. Everything that can
+    `rig`'s device (Rig.layout_digest): differ only in how the cameras record light, in the cameras' lenses and
+    poses and in the LEDs' positions, normals, profiles and intensities. Everything that can
     be checked, the devices included, is checked before the folder is made; a folder this call made is removed
     again when it fails before its first photo."""
     from twin.materials.samples import load_sample
@@ -141,8 +141,9 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     devices = {k: v for k, v in (devices or {}).items() if v is not None}
     if truth is not None and truth.layout_digest() != rig.layout_digest():
         raise CaptureError(f"--truth {truth.name!r} differs from rig {rig.name!r} in more than a calibration "
-                           "measures (how the cameras record light; the LEDs' positions, normals, profiles and "
-                           "intensities; the LED layout, sample plane or camera geometry differ): it is not a calibration of it")
+                           "measures (how the cameras record light, their lenses and poses; the LEDs' positions, "
+                           "normals, profiles and intensities): the LED layout, sample plane, frame or cameras' pixel "
+                           "grids differ, so it is not a calibration of it")
     # the twin renders (and so knows the ground truth) unless real cameras take the photos
     maps = load_sample(sample, resolution=resolution) if devices.get("cameras") != "basler" else None
     header, patterns, plan = capture_header(rig, sample, seed=seed, backend=backend, resolution=resolution,

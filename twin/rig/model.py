@@ -286,12 +286,13 @@ class Rig:
         return self._without_sensors().digest()
 
     def layout_digest(self) -> str:
-        """sha256 of the rig without what a lab calibrates of the same device beyond the cameras' geometry: how
-        the cameras record light (geometry_digest) and the LEDs' positions, normals, profiles and intensities
-        (calibration.leds). Two rigs with the same layout digest are one device, calibrated differently: the
-        same LEDs on the same boards, the same sample plane, frame and camera poses and lenses."""
-        return hashlib.sha256(canonical_bytes(self._without_sensors(),
-                                              ("positions", "normals", "profile", "intensity"))).hexdigest()
+        """sha256 of the rig without what a lab calibrates of a device: how the cameras record light
+        (geometry_digest), the cameras' lenses and poses (calibration.cameras) and the LEDs' positions, normals,
+        profiles and intensities (calibration.leds). Two rigs with the same layout digest are one device,
+        calibrated differently: the same LEDs on the same boards, the same sample plane and frame, the same
+        cameras (names and pixel grids)."""
+        return hashlib.sha256(canonical_bytes(self._without_sensors(), ("positions", "normals", "profile", "intensity"),
+                                              without_camera_geometry=True)).hexdigest()
 
     def _without_sensors(self) -> "Rig":
         """The rig with default camera sensors and no flat fields: without how its cameras record light."""
@@ -452,10 +453,14 @@ def _camera_dict(c: Camera) -> dict:
             "R": c.R.tolist(), "t": c.t.tolist(), "assumed": c.assumed, "note": c.note, "sensor": sensor}
 
 
-def canonical_bytes(rig: Rig, without_leds: tuple = ()) -> bytes:
+def canonical_bytes(rig: Rig, without_leds: tuple = (), without_camera_geometry: bool = False) -> bytes:
     """A canonical serialisation for hashing: the TOML text and every array's dtype, shape and bytes (but the
-    LED arrays named in `without_leds`)."""
-    parts = [tomli_w.dumps(rig_to_toml_dict(rig)).encode()]
+    LED arrays named in `without_leds`, and with without_camera_geometry the cameras' lenses and poses)."""
+    doc = rig_to_toml_dict(rig)
+    if without_camera_geometry:
+        doc["cameras"] = [{k: v for k, v in c.items() if k not in ("K", "dist", "R", "t", "assumed", "note")}
+                          for c in doc["cameras"]]
+    parts = [tomli_w.dumps(doc).encode()]
     arrays = {f"leds.{k}": getattr(rig.leds, k) for k in LEDs.ARRAYS if k not in without_leds}
     if rig.frame is not None:
         arrays |= {"frame.marker_ids": rig.frame.marker_ids, "frame.marker_corners": rig.frame.marker_corners}
