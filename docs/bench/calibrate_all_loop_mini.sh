@@ -4,8 +4,8 @@
 # seed 1. The network depends on the cameras' poses and the LEDs, so one is trained for the truth and one for the
 # calibrated rig with the shipped mini network's command; the nominal rig uses the shipped network.
 set -e
-L=/tmp/loopall
-hemicube calibrate all --rig mini --perturb 5 --board-scale 12 --views 4 --led-step 6 --no-progress -o $L/cal
+L=/tmp/loopall1
+hemicube calibrate all --rig mini --perturb 5 --board-scale 12 --views 4 --led-step 1 --no-progress -o $L/cal
 T=$L/cal/truth R=$L/cal/rig
 hemicube train --rig $T --steps 4000 --seed 0 --dropout 0 --no-progress -o $L/net_truth &
 hemicube train --rig $R --steps 4000 --seed 0 --dropout 0 --no-progress -o $L/net_calibrated
