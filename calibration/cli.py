@@ -201,14 +201,15 @@ def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, step: int 
             return still_photo(radiance, cam, seed=seed, frames=frames, first_frame=next(shots), camera_key=name,
                                flat_field=seen.flat_fields.get(name), camera_rgb=camera_rgb)
 
-        light = sum(plate.radiance(seen, name, upper[i:i + LED_BATCH]).sum(axis=0)
-                    for i in range(0, len(upper), LED_BATCH))  # LED RGB: every upper LED at full drive
+        light = plate.lit_radiance(seen, name, upper, batch=LED_BATCH)  # LED RGB: every upper LED at full drive
         channel = [photo(light * np.eye(3)[c]) for c in range(3)]
         M = crosstalk_from_photos([p for p, _ in channel], [m for _, m in channel], known, binned, plate,
                                   label=f"{name}, white plate")
         white = chart_patches(*photo(light), known, binned, chart, label=f"{name}, white plate")
-        r = chart_patches(*photo(chart_radiance(chart, seen, spectra, name, upper), camera_rgb=True), known, binned,
-                          chart, label=f"{name}, ColorChecker") / white * plate.albedo
+        # the chart lies where the plate lay (140 mm, the chart 82.5 mm): the plate's light over its albedo is
+        # what a perfect white there receives, no second evaluation of the LEDs
+        r = chart_patches(*photo(chart_radiance(chart, seen, spectra, name, light / plate.albedo), camera_rgb=True),
+                          known, binned, chart, label=f"{name}, ColorChecker") / white * plate.albedo
         # the LEDs' white as a spectroradiometer reads it off the plate where the chart lies: its LED-RGB mix
         weights = light[chart.patch_map(seen, cam) >= 0].mean(axis=0)
         ref = spectra.xyz(rho, weights)
@@ -268,6 +269,8 @@ def _stage(what: str, args, nominal, progress: bool) -> _Stage:
                     f"{n['median']:.2f})  normal {r['normal_deg']['median']:.2f} deg  profile {f['median']:.2f}% "
                     f"(p90 {f['p90']:.2f}%)  emission {r['emission_pct']['median']:.2f}%")
         bottom = what == "bottom"
+        if bottom and (nominal.bottom is None or not nominal.is_bottom.any()):
+            raise ValueError(f"calibrate bottom: rig {nominal.name!r} has no bottom LEDs")
         return _Stage(seeded(lambda rig, seed: perturb_leds(rig, seed, bottom=bottom)), LEDCalibrationError,
                       lambda known, truth: calibrate_leds_from_plate(known, truth, frames, args.seed, args.led_step,
                                                                      args.binning, progress, bottom=bottom),

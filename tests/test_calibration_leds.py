@@ -210,3 +210,15 @@ def test_calibrate_bottom_leds_cli(tmp_path):
     changed = np.flatnonzero(np.linalg.norm(cal.leds.positions - nominal.leds.positions, axis=1) > 0)
     assert nominal.is_bottom[changed].all() and changed.size == rep["calibrated"]
     assert not set(changed) & set(rep["crest_not_seen"]) and len(rep["crest_not_seen"]) > 0
+
+
+def test_calibrate_bottom_on_a_rig_without_bottom_leds_is_refused(tmp_path, capsys):
+    from dataclasses import replace
+
+    from hemicube.cli import main
+
+    rig = twin.load_rig("mini")
+    upper_only = replace(rig, name="mini-upper", leds=rig.leds.subset(np.flatnonzero(~rig.is_bottom)), bottom=None)
+    twin.save_rig(upper_only, tmp_path / "rig")
+    assert main(["calibrate", "bottom", "--rig", str(tmp_path / "rig"), "-o", str(tmp_path / "cal")]) == 2
+    assert "has no bottom LEDs" in capsys.readouterr().err and not (tmp_path / "cal").exists()

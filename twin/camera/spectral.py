@@ -119,20 +119,19 @@ def with_crosstalk(rig, spectra: DeviceSpectra):
     return replace(rig, cameras=cams)
 
 
-def chart_radiance(chart, rig, spectra: DeviceSpectra, camera_name: str, leds, drive=(1.0, 1.0, 1.0),
-                   device="cpu") -> np.ndarray:
-    """(H, W, 3) float64 CAMERA-RGB radiance of a colour chart (twin.targets.colorchecker) seen by `camera_name`,
-    `leds` lit at the RGB `drive`: per pixel T(ρ of its patch) @ (the LED-RGB light a white would send there),
-    the module docstring's T. Photograph it with twin.camera.hdr.still_photo(..., camera_rgb=True): the
-    crosstalk is in T already."""
+def chart_radiance(chart, rig, spectra: DeviceSpectra, camera_name: str, white) -> np.ndarray:
+    """(H, W, 3) float64 CAMERA-RGB radiance of a colour chart (twin.targets.colorchecker) seen by `camera_name`:
+    per pixel T(ρ of its patch) @ `white` (H, W, 3), the LED-RGB radiance a perfect white lying where the chart
+    lies sends to that pixel under the chart's light (DiffusePlate(albedo=1).lit_radiance, or a plate's photo
+    model divided by its albedo); the module docstring's T. Photograph it with
+    twin.camera.hdr.still_photo(..., camera_rgb=True): the crosstalk is in T already."""
     from twin.targets.colorchecker import FRAME, OFF
 
     _, rho = chart.names_and_spectra()
     rho = np.concatenate([rho, np.full((1, len(WAVELENGTHS)), chart.frame_reflectance)])  # FRAME is the last row
     T = spectra.transfer(camera_name, rho)
-    white = chart.white_radiance(rig, camera_name, leds, drive, device=device)
     idx = chart.patch_map(rig, rig.camera(camera_name))
     idx = np.where(idx == FRAME, len(rho) - 1, idx)
-    out = np.einsum("hwkc,hwc->hwk", T[np.maximum(idx, 0)], white)
+    out = np.einsum("hwkc,hwc->hwk", T[np.maximum(idx, 0)], np.asarray(white, np.float64))
     out[idx == OFF] = 0.0
     return out

@@ -3,12 +3,11 @@ the Classic's 24 colours on a 13.5 mm pitch, 55.5 x 82.5 mm; the real one is 57 
 
     chart = ColorChecker()
     idx = chart.patch_map(rig, camera)                     # (H, W): patch 0-23, FRAME, or OFF
-    L = chart.white_radiance(rig, "primary", leds, drive)  # (H, W, 3) LED-RGB radiance of a white there
 
 The patches' colours are spectral reflectances (`reflectances`: colour-science's "ColorChecker N Ohta", the
 Classic's 24 patches measured at 5 nm), not RGB triplets: what a camera records of them depends on the LEDs'
-spectra and its own filters (twin.camera.spectral.chart_radiance turns them into camera RGB), which is the
-point of photographing a chart. The surround is a matte black of 3% reflectance. Why the Mini: the mini rig
+spectra and its own filters (twin.camera.spectral.chart_radiance turns them into camera RGB, from the light a
+white plate in the chart's place receives: twin.targets.diffuse), which is the point of photographing a chart. The surround is a matte black of 3% reflectance. Why the Mini: the mini rig
 sees a 150 mm sample square and the Classic is 279 x 216 mm; the Mini fits with room to spare on both rigs.
 
 Patch order and layout as printed: row-major from 'dark skin' (top left) to 'black 2 (1.5 D)' (bottom right),
@@ -97,22 +96,3 @@ class ColorChecker:
             & (col >= 0) & (col < self.columns) & (row >= 0) & (row < self.rows)
         out[inside] = (row * self.columns + col)[inside].astype(np.int64)
         return out.reshape(camera.height, camera.width)
-
-    def white_radiance(self, rig, camera_name: str, leds, drive=(1.0, 1.0, 1.0), batch: int = 64,
-                       device="cpu") -> np.ndarray:
-        """(H, W, 3) float64 LED-RGB radiance of a perfect white Lambertian where the chart lies (0 beside it),
-        `leds` lit together at the RGB `drive` (0-1 per channel): the light each patch receives, in the unit
-        twin.camera.spectral turns into camera RGB. The twin's forward model, the holder frame's shadows
-        included (twin.targets.diffuse)."""
-        from .diffuse import DiffusePlate
-
-        plate = DiffusePlate(albedo=1.0, size_mm=2 * (max(self.size_mm) / 2 + float(np.abs(self.offset_mm).max())),
-                             height_mm=self.height_mm)
-        cam = rig.camera(camera_name)
-        leds = np.asarray(leds, np.int64)
-        total = np.zeros((cam.height, cam.width, 3))
-        for i in range(0, len(leds), batch):
-            total += plate.radiance(rig, camera_name, leds[i:i + batch], device=device).sum(axis=0)
-        total *= np.asarray(drive, np.float64)
-        total[self.patch_map(rig, cam) == OFF] = 0.0
-        return total

@@ -3,6 +3,7 @@ albedo laid in the sample holder, at the sample plane or lifted by spacers of kn
 
     plate = DiffusePlate(height_mm=40.0)
     L = plate.radiance(rig, "primary", leds=[0, 1, 2])     # (3, H, W, 3): each LED alone at full drive
+    W = plate.lit_radiance(rig, "primary", leds=[0, 1, 2])  # (H, W, 3): the three lit together
 
 Why a diffuse plate (issue #16 lets the LED target be chosen): a Lambertian plate's radiance under one LED is
 the LED's own light, I_c Psi(theta_e) cos(theta_e) cos(theta_i) rho / (pi r^2) (paper Eq. 1 with a constant
@@ -83,3 +84,14 @@ class DiffusePlate:
         out = np.zeros((len(leds), cam.height * cam.width, 3))
         out[:, inside] = np.moveaxis(m, 1, 0)
         return out.reshape(len(leds), cam.height, cam.width, 3)
+
+    def lit_radiance(self, rig, camera_name: str, leds, drive=(1.0, 1.0, 1.0), batch: int = 64,
+                     device="cpu") -> np.ndarray:
+        """(H, W, 3) float64: the plate's radiance with `leds` lit together at the RGB `drive` (0-1 per channel),
+        the sum of their `radiance`, `batch` LEDs at a time (a batch's radiance is batch x H x W x 3 float64)."""
+        leds = np.asarray(leds, dtype=np.int64)
+        cam = rig.camera(camera_name)
+        total = np.zeros((cam.height, cam.width, 3))
+        for i in range(0, len(leds), batch):
+            total += self.radiance(rig, camera_name, leds[i:i + batch], device=device).sum(axis=0)
+        return total * np.asarray(drive, np.float64)
