@@ -1,0 +1,129 @@
+"""Issue #14's footprint experiments (docs/accuracy.md, "a narrower footprint halves paper's error"), as run.
+
+    python docs/bench/footprint_experiments_2026-11-25.py SAMPLE OUT MODE
+
+runs `hemicube validate`'s end-to-end function (mini rig, capture seed 1, CPU) on SAMPLE in one process with the
+stages MODE names replaced, and prints the goal rows as JSON. MODE holds any of:
+    mhc    the HDR merge's demosaic replaced by Malvar-He-Cutler 2004 (5x5 kernels; equal to colour-demosaicing's
+           demosaicing_CFA_Bayer_Malvar2004 away from the 2-pixel border)
+    x4     every exposure of the bracket taken 4 times (the merge averages them)
+    cell   each texel's photos the mean of 3 x 3 samples at +-1/3 texel
+    raw    the primary view's photos the mean of each colour's own photosites inside the texel's cell
+A record of how the numbers were measured, not part of the pipeline.
+"""
+import sys, json, time
+from pathlib import Path
+import numpy as np
+from scipy.ndimage import correlate
+
+def mhc(mos, cfa):
+    # cfa: 2x2 table of channel index at (i%2, j%2)
+    H, W = mos.shape
+    ch = np.asarray(cfa)[np.arange(H)[:, None] % 2, np.arange(W)[None, :] % 2]
+    k = lambda a: np.asarray(a, float) / 8.0
+    G_at_RB = k([[0,0,-1,0,0],[0,0,2,0,0],[-1,2,4,2,-1],[0,0,2,0,0],[0,0,-1,0,0]])
+    RB_at_G_row = k([[0,0,.5,0,0],[0,-1,0,-1,0],[-1,4,5,4,-1],[0,-1,0,-1,0],[0,0,.5,0,0]])
+    RB_at_G_col = RB_at_G_row.T
+    RB_at_BR = k([[0,0,-1.5,0,0],[0,2,0,2,0],[-1.5,0,6,0,-1.5],[0,2,0,2,0],[0,0,-1.5,0,0]])
+    f = lambda kk: correlate(mos, kk, mode="mirror")
+    g_rb, rb_row, rb_col, rb_br = f(G_at_RB), f(RB_at_G_row), f(RB_at_G_col), f(RB_at_BR)
+    out = np.zeros((H, W, 3))
+    # row has R? for each row, which non-green channel lives in it
+    row_ch = np.where((ch == 0).any(axis=1), 0, 2)[:, None] * np.ones((1, W), int)
+    for c in (0, 2):
+        o = np.where(ch == c, mos, 0.0)
+        other = 2 - c
+        o = np.where(ch == other, rb_br, o)
+        g = ch == 1
+        o = np.where(g & (row_ch == c), rb_row, o)
+        o = np.where(g & (row_ch != c), rb_col, o)
+        out[..., c] = o
+    out[..., 1] = np.where(ch == 1, mos, g_rb)
+    return out
+
+def patch():
+    import warp as wp
+    import twin.camera.hdr as hdr
+    from twin.camera.bayer import cfa_table
+    orig = hdr.merge_hdr_device
+    def merged(raws, exposures_s, sensor, gain_db=0.0, margin=hdr.DEFAULT_MARGIN):
+        out = orig(raws, exposures_s, sensor, gain_db, margin)
+        mos = out["mosaic"].numpy()
+        rgb = mhc(mos, cfa_table(sensor.bayer)).astype(np.float32)
+        out["radiance"] = wp.array(rgb, dtype=wp.vec3f, device=raws.device)
+        return out
+    hdr.merge_hdr_device = merged
+
+if __name__ == "__main__":
+    sample, outdir, mode = sys.argv[1], Path(sys.argv[2]), sys.argv[3]
+    import torch; torch.set_num_threads(1)
+    if "mhc" in mode:
+        patch()
+    if "x4" in mode:
+        import twin.capture.runner as run
+        orig = run.bracket_exposures
+        run.bracket_exposures = lambda L, sensor: [t for t in orig(L, sensor) for _ in range(4)]
+    if "cell" in mode:
+        import dataclasses
+        import reconstruction.extraction as ex
+        import reconstruction.pipeline as pl
+        orig_extract = ex.extract
+        class Shifted(ex.TextureGrid):
+            def positions(self, rig):
+                p = super().positions(rig)
+                return p + self.texel_mm * (self._du * np.asarray(rig.sample.x_axis) + self._dv * np.asarray(rig.sample.y_axis))
+        def extract(session, rig, grid, alignment, **kw):
+            base = orig_extract(session, rig, grid, alignment, **kw)
+            acc_l, acc_p = [], []
+            for du in (-1/3, 0, 1/3):
+                for dv in (-1/3, 0, 1/3):
+                    g = Shifted(grid.resolution, grid.size_mm)
+                    object.__setattr__(g, "_du", du); object.__setattr__(g, "_dv", dv)
+                    m = orig_extract(session, rig, g, alignment, **kw)
+                    acc_l.append(m.lines); acc_p.append(m.learned_photos)
+            return dataclasses.replace(base, lines=np.mean(acc_l, 0).astype(np.float32),
+                                       learned_photos=np.mean(acc_p, 0).astype(np.float32))
+        ex.extract = extract
+        pl.extract = extract
+    if "raw" in mode:
+        import dataclasses
+        import reconstruction.extraction as ex
+        from twin.camera.bayer import cfa_index
+        from twin.camera.correction import apply_colour_matrix
+        from twin.capture.plan import LEARNED, LINES
+        from reconstruction.data import LUMITEXEL_SCALE
+        orig_extract2 = ex.extract
+        def extract(session, rig, grid, alignment, **kw):
+            base = orig_extract2(session, rig, grid, alignment, **kw)
+            cam = rig.camera(next(iter(rig.cameras)))
+            H, W = cam.height, cam.width
+            ys, xs = np.mgrid[0:H, 0:W]
+            p = cam.plane_points(np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64), rig.sample.origin, rig.sample.normal)
+            p = p - np.asarray(rig.sample.origin)
+            u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
+            R = grid.resolution
+            j = np.floor((u + grid.size_mm / 2) / grid.texel_mm); i = np.floor((v + grid.size_mm / 2) / grid.texel_mm)
+            inside = (i >= 0) & (i < R) & (j >= 0) & (j < R) & np.isfinite(u)
+            texel = np.where(inside, i * R + j, -1).astype(np.int64)
+            ch = cfa_index(cam.sensor.bayer, H, W).ravel()
+            flat, C = ex.calibration_of(cam, rig.flat_fields.get(cam.name))
+            flat = flat[..., 0].ravel()
+            sel = [(texel >= 0) & (ch == c) for c in range(3)]
+            counts = [np.bincount(texel[s], minlength=R * R) for s in sel]
+            print("photosites per texel min", [int(c.min()) for c in counts], file=sys.stderr)
+            def cellvals(img):
+                img = img.reshape(-1, 3)
+                out = np.stack([np.bincount(texel[sel[c]], weights=(img[sel[c], c] * flat[sel[c]]), minlength=R * R) / np.maximum(counts[c], 1) for c in range(3)], 1)
+                return np.maximum(apply_colour_matrix(out, C), 0) * np.float32(LUMITEXEL_SCALE)
+            lines = np.stack([cellvals(session.photo(k, 0)) for k in LINES], 1).astype(np.float32)
+            lp = base.learned_photos.copy()
+            for k in LEARNED:
+                lp[:, 0, k] = cellvals(session.photo(k, 0))
+            return dataclasses.replace(base, lines=lines, learned_photos=lp)
+        ex.extract = extract
+    import twin
+    from hemicube.validate import end_to_end
+    t = time.time()
+    metrics, rows, _ = end_to_end(twin.load_rig("mini"), sample, "cpu", outdir, None, 1, False)
+    print(json.dumps({"sample": sample, "mode": mode, "s": time.time() - t,
+                      "rows": [(r["metric"], round(float(r["value"]), 4), r["passed"]) for r in rows]}))
