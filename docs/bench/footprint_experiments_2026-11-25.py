@@ -9,6 +9,8 @@ stages MODE names replaced, and prints the goal rows as JSON. MODE holds any of:
     x4     every exposure of the bracket taken 4 times (the merge averages them)
     cell   each texel's photos the mean of 3 x 3 samples at +-1/3 texel
     raw    the primary view's photos the mean of each colour's own photosites inside the texel's cell
+    hyb    each photo's bilinear value replaced by the Malvar-He-Cutler one where they differ by more than 3
+           robust standard deviations; with "loc", the difference divided by the square root of the signal first
 A record of how the numbers were measured, not part of the pipeline.
 """
 import sys, json, time
@@ -121,6 +123,28 @@ if __name__ == "__main__":
                 lp[:, 0, k] = cellvals(session.photo(k, 0))
             return dataclasses.replace(base, lines=lines, learned_photos=lp)
         ex.extract = extract
+    if "hyb" in mode:
+        # per pixel and colour: the bilinear value unless it differs from the Malvar-He-Cutler value by more than
+        # Z robust standard deviations (1.4826 MAD over the photo) of that difference
+        import reconstruction.extraction as ex
+        from twin.camera.bayer import cfa_index, cfa_table
+        Z = 3.0
+        orig_corrected = ex.corrected
+        def corrected(img, camera, calibration=None):
+            ch = cfa_index(camera.sensor.bayer, camera.height, camera.width)
+            mos = np.take_along_axis(img.astype(np.float64), ch[..., None], 2)[..., 0]
+            sharp = mhc(mos, cfa_table(camera.sensor.bayer))
+            d = sharp - img
+            if "loc" in mode:  # shot noise: the difference's sd grows as the square root of the signal
+                level = np.sqrt(np.maximum(img, 1e-3 * img.max()))
+                d = d / level
+            sd = np.empty(3)
+            for c in range(3):  # over the pixels that interpolate colour c (its own sites have d = 0)
+                dc = d[..., c][ch != c]
+                sd[c] = 1.4826 * np.median(np.abs(dc - np.median(dc)))
+            out = np.where(np.abs(d) > Z * sd, sharp, img).astype(np.float32)
+            return orig_corrected(out, camera, calibration)
+        ex.corrected = corrected
     import twin
     from hemicube.validate import end_to_end
     t = time.time()
