@@ -11,6 +11,7 @@ stages MODE names replaced, and prints the goal rows as JSON. MODE holds any of:
     raw    the primary view's photos the mean of each colour's own photosites inside the texel's cell
     hyb    each photo's bilinear value replaced by the Malvar-He-Cutler one where they differ by more than 3
            robust standard deviations; with "loc", the difference divided by the square root of the signal first
+    var    the same test against the exact variance of the difference, from the HDR merge of the stored raw frames
 A record of how the numbers were measured, not part of the pipeline.
 """
 import sys, json, time
@@ -123,6 +124,42 @@ if __name__ == "__main__":
                 lp[:, 0, k] = cellvals(session.photo(k, 0))
             return dataclasses.replace(base, lines=lines, learned_photos=lp)
         ex.extract = extract
+    if "var" in mode:
+        # per pixel and colour: the bilinear value unless it differs from the Malvar-He-Cutler value by more than
+        # Z standard deviations of that difference, computed exactly from the HDR merge's per-photosite variance
+        # (1 / weights_sum of the stored raw frames, merged again)
+        from twin.capture.session import CaptureSession, photo_stem
+        from twin.camera.bayer import cfa_table, demosaic
+        from twin.camera.hdr import merge_hdr_numpy
+        import twin as _tw
+        Z = 3.0
+        sensor = _tw.load_rig("mini").camera(next(iter(_tw.load_rig("mini").cameras))).sensor
+        cfa = cfa_table(sensor.bayer)
+        op = lambda m: mhc(m, cfa) - demosaic(m, sensor.bayer)
+        orig_photo = CaptureSession.photo
+        stats = []
+        def photo(self, k, c):
+            img = orig_photo(self, k, c)
+            rec = self.photos[photo_stem(k, c)]
+            m = merge_hdr_numpy(self.raw_frames(k, c), rec["exposures_s"], sensor)
+            with np.errstate(divide="ignore"):
+                var = np.where(m.weights_sum > 0, 1.0 / m.weights_sum.astype(np.float64), 0.0)
+            mos = m.mosaic.astype(np.float64)
+            H, W = mos.shape
+            d = op(mos)
+            sd2 = np.zeros((H, W, 3))
+            sq = np.sqrt(var)
+            for i0 in range(6):
+                for j0 in range(6):
+                    M = np.zeros((H, W)); M[i0::6, j0::6] = 1.0
+                    sd2 += op(M * sq) ** 2
+            sharp = img + d
+            flag = np.abs(d) > Z * np.sqrt(sd2)
+            stats.append(flag.mean())
+            return np.where(flag, sharp, img).astype(np.float32)
+        CaptureSession.photo = photo
+        import atexit
+        atexit.register(lambda: print("flagged fraction mean %.4f" % np.mean(stats), file=sys.stderr))
     if "hyb" in mode:
         # per pixel and colour: the bilinear value unless it differs from the Malvar-He-Cutler value by more than
         # Z robust standard deviations (1.4826 MAD over the photo) of that difference
