@@ -12,9 +12,11 @@ stages MODE names replaced, and prints the goal rows as JSON. MODE holds any of:
     hyb    each photo's bilinear value replaced by the Malvar-He-Cutler one where they differ by more than 3
            robust standard deviations; with "loc", the difference divided by the square root of the signal first
     var    the same test against the exact variance of the difference, from the HDR merge of the stored raw frames
+    fp     fit, predict the photos through each view's bilinear footprint from the texel cells around each texel,
+           fit again to the photos less the predicted spill (FP_ITERS times)
 A record of how the numbers were measured, not part of the pipeline.
 """
-import sys, json, time
+import os, sys, json, time
 from pathlib import Path
 import numpy as np
 from scipy.ndimage import correlate
@@ -124,6 +126,88 @@ if __name__ == "__main__":
                 lp[:, 0, k] = cellvals(session.photo(k, 0))
             return dataclasses.replace(base, lines=lines, learned_photos=lp)
         ex.extract = extract
+    if "fp" in mode:
+        # the footprint in the fit, one outer iteration: fit; predict each texel's photos at its centre (P) and
+        # through the bilinear demosaic + lookup footprint of the texel cells around it (Y = sum_j W_ij P_j, with
+        # W from indicator images of the texel cells pushed through mosaic, demosaic and lookup); refit to
+        # the photos less the predicted spill (Y - P)
+        import reconstruction.extraction as ex
+        import reconstruction.fitting as fitting
+        from reconstruction.alignment import bilinear
+        from reconstruction.data import LUMITEXEL_SCALE
+        from twin.camera.bayer import cfa_index, demosaic
+        import twin as _tw
+        stash = {}
+        orig_extract4 = ex.extract
+        def extract(session, rig, grid, alignment, **kw):
+            m = orig_extract4(session, rig, grid, alignment, **kw)
+            stash["meas"], stash["rig"], stash["grid"] = m, rig, grid
+            return m
+        ex.extract = extract
+        def footprint(rig, grid, cam, uv):
+            """W (9, N) for one camera and colour c -> list over c: weight of neighbour (dr, ds) of each texel."""
+            R = grid.resolution
+            H, Wd = cam.height, cam.width
+            ys, xs = np.mgrid[0:H, 0:Wd]
+            p = cam.plane_points(np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64), rig.sample.origin, rig.sample.normal)
+            p = p - np.asarray(rig.sample.origin)
+            u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
+            jj = np.clip(np.floor((u + grid.size_mm / 2) / grid.texel_mm), 0, R - 1).astype(int).reshape(H, Wd)
+            ii = np.clip(np.floor((v + grid.size_mm / 2) / grid.texel_mm), 0, R - 1).astype(int).reshape(H, Wd)
+            ch = cfa_index(cam.sensor.bayer, H, Wd)
+            r = np.arange(R * R) // R; s_ = np.arange(R * R) % R
+            out = []
+            for c in range(3):
+                Wc = np.zeros((3, 3, R * R))
+                for a in range(3):
+                    for b in range(3):
+                        ind = ((ii % 3 == a) & (jj % 3 == b) & (ch == c)).astype(np.float64)
+                        resp = demosaic(ind, cam.sensor.bayer)[..., c]
+                        val = bilinear(resp[..., None], uv[:, 0], uv[:, 1])[:, 0]
+                        dr = (a - r) % 3; dr = np.where(dr == 2, -1, dr)
+                        ds = (b - s_) % 3; ds = np.where(ds == 2, -1, ds)
+                        Wc[dr + 1, ds + 1, np.arange(R * R)] = val
+                out.append(Wc)
+            return out
+        def through(Wcs, P, R):
+            """Y (N, K, 3) = sum over the 3x3 neighbours of W * P (edge texels clamp)."""
+            Pg = P.reshape(R, R, *P.shape[1:])
+            Y = np.zeros_like(P, dtype=np.float64)
+            for c in range(3):
+                for dr in (-1, 0, 1):
+                    for ds in (-1, 0, 1):
+                        rr = np.clip(np.arange(R) + dr, 0, R - 1); ss = np.clip(np.arange(R) + ds, 0, R - 1)
+                        nb = Pg[rr][:, ss][..., c].reshape(R * R, -1)
+                        Y[..., c] += Wcs[c][dr + 1, ds + 1][:, None] * nb
+            return Y
+        orig_fit = fitting.fit_ggx
+        def predict(rig, pos, res, weights, cam):
+            w = np.zeros((weights.shape[0], rig.num_leds, 3), np.float32)
+            w[:, np.flatnonzero(~np.asarray(rig.is_bottom))] = weights
+            params = dict(normal=res.normal, tangent=res.tangent, rho_d=res.rho_d, rho_s=res.rho_s,
+                          alpha_x=res.alpha_x, alpha_y=res.alpha_y)
+            m = _tw.measurements(rig, pos.astype(np.float32), patterns=w, transparency=np.zeros(len(pos)),
+                                 convention="physical", camera=cam, visibility=True, device="cpu", **params)
+            return m.astype(np.float64) * LUMITEXEL_SCALE
+        def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, secondary=None, grid_shape=None, config=fitting.FitConfig()):
+            res = orig_fit(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary, grid_shape=grid_shape, config=config)
+            meas, grid = stash["meas"], stash["grid"]
+            R = grid.resolution
+            cams = [rig.camera(c) for c in rig.cameras]
+            W0 = footprint(rig, grid, cams[0], meas.pixel_primary.astype(np.float64))
+            W1 = footprint(rig, grid, cams[1], meas.pixel_secondary.astype(np.float64))
+            tot = [w.sum(axis=(0, 1)) for w in W0]
+            print("footprint: centre weight median", [float(np.median(w[1, 1])) for w in W0], "sum", [float(np.median(t)) for t in tot], file=sys.stderr)
+            for it in range(int(os.environ.get("FP_ITERS", "1"))):
+                P0 = predict(rig, positions, res, line_weights, cams[0].name)
+                P1 = predict(rig, positions, res, secondary[1], cams[1].name)
+                s0 = through(W0, P0, R) - P0
+                s1 = through(W1, P1, R) - P1
+                print("spill rms rel", float(np.sqrt(np.mean((s0 / np.maximum(P0, 1e-6)) ** 2))), file=sys.stderr)
+                res = orig_fit(rig, positions, lumitexels, lines=np.maximum(lines - s0, 0).astype(np.float32), line_weights=line_weights,
+                               secondary=(np.maximum(secondary[0] - s1, 0).astype(np.float32), secondary[1]), grid_shape=grid_shape, config=config)
+            return res
+        fitting.fit_ggx = fit_ggx
     if "var" in mode:
         # per pixel and colour: the bilinear value unless it differs from the Malvar-He-Cutler value by more than
         # Z standard deviations of that difference, computed exactly from the HDR merge's per-photosite variance
