@@ -1,5 +1,6 @@
 """A ColorChecker for the colour calibration (issue #16): the X-Rite ColorChecker Classic Mini (4 x 6 patches,
-the Classic's 24 colours on a 13.5 mm pitch, 55.5 x 82.5 mm; the real one is 57 x 83) lying in the sample holder, lit by the rig's LEDs.
+the Classic's 24 colours on a 13.5 mm pitch, 55.5 x 82.5 mm; the real one is 57 x 83) lying in the sample holder,
+lit by the rig's LEDs.
 
     chart = ColorChecker()
     idx = chart.patch_map(rig, camera)                     # (H, W): patch 0-23, FRAME, or OFF
@@ -7,8 +8,9 @@ the Classic's 24 colours on a 13.5 mm pitch, 55.5 x 82.5 mm; the real one is 57 
 The patches' colours are spectral reflectances (`reflectances`: colour-science's "ColorChecker N Ohta", the
 Classic's 24 patches measured at 5 nm), not RGB triplets: what a camera records of them depends on the LEDs'
 spectra and its own filters (twin.camera.spectral.chart_radiance turns them into camera RGB, from the light a
-white plate in the chart's place receives: twin.targets.diffuse), which is the point of photographing a chart. The surround is a matte black of 3% reflectance. Why the Mini: the mini rig
-sees a 150 mm sample square and the Classic is 279 x 216 mm; the Mini fits with room to spare on both rigs.
+white plate in the chart's place receives: twin.targets.diffuse), which is the point of photographing a chart.
+The surround is a matte black of 3% reflectance. Why the Mini: the mini rig sees a 150 mm sample square and the
+Classic is 279 x 216 mm; the Mini fits with room to spare on both rigs.
 
 Patch order and layout as printed: row-major from 'dark skin' (top left) to 'black 2 (1.5 D)' (bottom right),
 columns along the sample plane's x axis, the top row towards +y. Patches are Lambertian (the chart's matte
