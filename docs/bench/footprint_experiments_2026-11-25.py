@@ -46,6 +46,18 @@ def mhc(mos, cfa):
     out[..., 1] = np.where(ch == 1, mos, g_rb)
     return out
 
+def pixel_cells(rig, grid, cam):
+    """(H, W) row and column of the texel cell each pixel's ray meets on the sample plane (unclipped, float)."""
+    H, W = cam.height, cam.width
+    ys, xs = np.mgrid[0:H, 0:W]
+    p = cam.plane_points(np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64), rig.sample.origin,
+                         rig.sample.normal) - np.asarray(rig.sample.origin)
+    u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
+    i = np.floor((v + grid.size_mm / 2) / grid.texel_mm).reshape(H, W)
+    j = np.floor((u + grid.size_mm / 2) / grid.texel_mm).reshape(H, W)
+    return i, j
+
+
 def patch():
     import warp as wp
     import twin.camera.hdr as hdr
@@ -71,7 +83,6 @@ if __name__ == "__main__":
     if "cell" in mode:
         import dataclasses
         import reconstruction.extraction as ex
-        import reconstruction.pipeline as pl
         orig_extract = ex.extract
         class Shifted(ex.TextureGrid):
             def positions(self, rig):
@@ -89,7 +100,6 @@ if __name__ == "__main__":
             return dataclasses.replace(base, lines=np.mean(acc_l, 0).astype(np.float32),
                                        learned_photos=np.mean(acc_p, 0).astype(np.float32))
         ex.extract = extract
-        pl.extract = extract
     if "raw" in mode:
         import dataclasses
         import reconstruction.extraction as ex
@@ -102,13 +112,9 @@ if __name__ == "__main__":
             base = orig_extract2(session, rig, grid, alignment, **kw)
             cam = rig.camera(next(iter(rig.cameras)))
             H, W = cam.height, cam.width
-            ys, xs = np.mgrid[0:H, 0:W]
-            p = cam.plane_points(np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64), rig.sample.origin, rig.sample.normal)
-            p = p - np.asarray(rig.sample.origin)
-            u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
             R = grid.resolution
-            j = np.floor((u + grid.size_mm / 2) / grid.texel_mm); i = np.floor((v + grid.size_mm / 2) / grid.texel_mm)
-            inside = (i >= 0) & (i < R) & (j >= 0) & (j < R) & np.isfinite(u)
+            i, j = (a.ravel() for a in pixel_cells(rig, grid, cam))
+            inside = (i >= 0) & (i < R) & (j >= 0) & (j < R) & np.isfinite(i) & np.isfinite(j)
             texel = np.where(inside, i * R + j, -1).astype(np.int64)
             ch = cfa_index(cam.sensor.bayer, H, W).ravel()
             flat, C = ex.calibration_of(cam, rig.flat_fields.get(cam.name))
@@ -141,20 +147,14 @@ if __name__ == "__main__":
         orig_extract4 = ex.extract
         def extract(session, rig, grid, alignment, **kw):
             m = orig_extract4(session, rig, grid, alignment, **kw)
-            stash["meas"], stash["rig"], stash["grid"] = m, rig, grid
+            stash["meas"], stash["grid"] = m, grid
             return m
         ex.extract = extract
         def footprint(rig, grid, cam, uv):
-            """W (9, N) for one camera and colour c -> list over c: weight of neighbour (dr, ds) of each texel."""
+            """Per colour c, (3, 3, N): the weight of each texel's neighbour (dr, ds) in its photo from camera `cam`."""
             R = grid.resolution
-            H, Wd = cam.height, cam.width
-            ys, xs = np.mgrid[0:H, 0:Wd]
-            p = cam.plane_points(np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64), rig.sample.origin, rig.sample.normal)
-            p = p - np.asarray(rig.sample.origin)
-            u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
-            jj = np.clip(np.floor((u + grid.size_mm / 2) / grid.texel_mm), 0, R - 1).astype(int).reshape(H, Wd)
-            ii = np.clip(np.floor((v + grid.size_mm / 2) / grid.texel_mm), 0, R - 1).astype(int).reshape(H, Wd)
-            ch = cfa_index(cam.sensor.bayer, H, Wd)
+            ii, jj = (np.clip(a, 0, R - 1).astype(int) for a in pixel_cells(rig, grid, cam))
+            ch = cfa_index(cam.sensor.bayer, cam.height, cam.width)
             r = np.arange(R * R) // R; s_ = np.arange(R * R) % R
             out = []
             for c in range(3):
@@ -198,7 +198,7 @@ if __name__ == "__main__":
             W1 = footprint(rig, grid, cams[1], meas.pixel_secondary.astype(np.float64))
             tot = [w.sum(axis=(0, 1)) for w in W0]
             print("footprint: centre weight median", [float(np.median(w[1, 1])) for w in W0], "sum", [float(np.median(t)) for t in tot], file=sys.stderr)
-            for it in range(int(os.environ.get("FP_ITERS", "1"))):
+            for _ in range(int(os.environ.get("FP_ITERS", "1"))):
                 P0 = predict(rig, positions, res, line_weights, cams[0].name)
                 P1 = predict(rig, positions, res, secondary[1], cams[1].name)
                 s0 = through(W0, P0, R) - P0
