@@ -84,12 +84,14 @@ def cmd_reconstruct_many(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import bench_fit_forward, bench_reconstruct
+    from .bench import bench_fit_forward, bench_fit_jacobian, bench_reconstruct
 
     from twin.bench import bench_exit
 
     if args.bench_command == "fit-forward":
         res = bench_fit_forward(args.rig, args.device, args.texels, args.repeats)
+    elif args.bench_command == "fit-jacobian":
+        res = bench_fit_jacobian(args.rig, args.device, args.texels, args.repeats)
     else:
         res = bench_reconstruct(args.rig, args.device, args.texels, args.network)
     print(json.dumps(res, indent=2))
@@ -185,4 +187,12 @@ def register_bench(bench) -> None:
     s.add_argument("--texels", type=int, default=2304, help="texels evaluated at once (default: %(default)s, the "
                    "mini rig's 48^2 grid)")
     s.add_argument("--repeats", type=int, default=5, help="timed runs, the fastest reported (default: %(default)s)")
+    s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("fit-jacobian", help="seconds of one Jacobian of the GGX fit's residuals, analytic, against "
+                         "forward differences")
+    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
+    s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
+    s.add_argument("--texels", type=int, default=2304, help="texels at once (default: %(default)s, the mini rig's "
+                   "48^2 grid)")
+    s.add_argument("--repeats", type=int, default=3, help="timed runs, the fastest reported (default: %(default)s)")
     s.set_defaults(func=cmd_bench)

@@ -42,10 +42,11 @@ Parameterisation of the geometry: 5 unconstrained numbers per texel, [u, v, thet
 The neural method's heads add 6 numbers, rho_d = sigmoid(d) and rho_s = rho_s_max sigmoid(s) (reference §5).
 
 Methods (FITTING_METHODS, dispatched by `fit_method`, one function each):
-  * "direct" (ours): Levenberg-Marquardt on the 5 geometry numbers per texel (forward-difference Jacobian),
-    the albedos in closed form at every evaluation (variable projection: the 6 linear unknowns never slow
-    it), in chunks of `batch` texels; on a grid, neighbour propagation (`_propagate`), then the joint prior
-    on roughness and specular albedo (`_joint_roughness`, `_joint_albedos`; FitConfig.alpha_prior), which
+  * "direct" (ours): Levenberg-Marquardt on the 5 geometry numbers per texel, the albedos in closed form at
+    every evaluation (variable projection: the 6 linear unknowns never slow it), with an analytic Jacobian (the
+    bases' derivatives from one Warp launch, twin.optics.jvp; the albedos' own by the implicit function theorem;
+    FitConfig.jacobian), in chunks of `batch` texels; on a grid, neighbour propagation (`_propagate`), then the
+    joint prior on roughness and specular albedo (`_joint_roughness`, `_joint_albedos`; FitConfig.alpha_prior), which
     couples neighbouring texels of one material so that a lobe the photos barely see is pooled (issue #14).
   * "neural" (reference §5): a learnable feature texture (channels, R, C), Xavier-uniform, sampled with
     grid_sample (bilinear, align_corners=True) at the texel centres, feeds 5 MLP heads (n 2, theta 1,
@@ -106,11 +107,13 @@ from .data import LUMITEXEL_SCALE
 __all__ = ["FitConfig", "FitResult", "fit_ggx", "fit_method", "to_maps", "FITTING_METHODS", "METHODS", "LOSSES"]
 
 LOSSES = ("log1p", "mse")
+JACOBIANS = ("analytic", "forward")  # FitConfig.jacobian
 METHODS = ("direct", "neural")  # FITTING_METHODS below: one function each
 GEOMETRY_SIZE = 5  # [u, v, theta, a_x, a_y]
 # texel-LED pairs evaluated at once when FitConfig.batch is None (ours, memory): every texel of a mini-rig grid up
 # to 290^2 in one range; 2,730 texels on the paper rig, where a 256^2 grid in one range asked an H100 for 12 GB
-# per forward model (and the Levenberg-Marquardt Jacobian evaluates six), and 16,384 texels ran out of its 80 GB
+# per forward model (and the Levenberg-Marquardt's forward-difference Jacobian evaluates six; the analytic one keeps
+# five derivatives of each basis and a 5-row Jacobian, about as much), and 16,384 texels ran out of its 80 GB
 AUTO_CHUNK_PAIRS = 2 ** 25
 HEADS = (("normal", 2), ("theta", 1), ("alpha", 2), ("rho_d", 3), ("rho_s", 3))  # reference §5's 5 heads
 
@@ -121,8 +124,8 @@ class FitConfig:
     module docstring's table)."""
 
     method: str = "direct"  # ours, measured
-    # direct (ours): Levenberg-Marquardt iterations (6 evaluations of the forward model each, on the texels not
-    # yet converged); neural: Adam steps of `batch` texels (the reference runs 120,000 steps of 128 texels).
+    # direct (ours): Levenberg-Marquardt iterations (a Jacobian and an evaluation of the residuals each, on the texels
+    # not yet converged); neural: Adam steps of `batch` texels (the reference runs 120,000 steps of 128 texels).
     iterations: int | None = None  # None: 20 (direct), 600 (neural)
     lr: float | None = None  # the neural method's Adam (None: 1e-3, reference §5); the direct method has none
     batch: int | None = None  # direct: texels per chunk (None: AUTO_CHUNK_PAIRS / LEDs); neural: per step (None: 256)
@@ -132,7 +135,13 @@ class FitConfig:
     alpha_range: tuple = (0.006, 1.006)
     rho_s_max: float = 20.0
     lm_damping: float = 1e-2  # direct: Levenberg-Marquardt's initial mu (ours)
-    fd_step: float = 1e-3  # direct: forward-difference step of the Jacobian in every number (ours)
+    # direct: the Levenberg-Marquardt's Jacobian (ours): "analytic", the bases' derivatives from one Warp launch per
+    # camera (twin.optics.jvp) and the albedos' by variable projection (_analytic_jacobian); "forward", forward
+    # differences of the residuals, five more evaluations of the forward model a step (the same-run baseline of
+    # `hemicube bench fit-jacobian`)
+    jacobian: str = "analytic"
+    fd_step: float = 1e-3  # direct: forward-difference step of the Jacobian in every number (ours), and the
+    # analytic one's where a lobe is isotropic (_tensor_jacobian)
     tolerance: float = 1e-5  # direct: a texel stops when a kept step lowers its loss by less (relative; ours)
     propagation: int = 2  # direct, on a grid: rounds of neighbour propagation (ours; _propagate)
     # direct, on a grid (ours; _joint_roughness): the expected change of log alpha between neighbouring texels of
@@ -161,6 +170,8 @@ class FitConfig:
             raise ValueError(f"FitConfig.method must be one of {METHODS}, got {self.method!r}")
         if self.loss not in LOSSES:
             raise ValueError(f"FitConfig.loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.jacobian not in JACOBIANS:
+            raise ValueError(f"FitConfig.jacobian must be one of {JACOBIANS}, got {self.jacobian!r}")
         for k, least in (("iterations", 0), ("batch", 1)):  # 0 iterations: the initialisation alone
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < least):
@@ -268,9 +279,14 @@ def _f(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
     return torch.log1p(x) if loss == "log1p" else x / scale
 
 
+def _df(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
+    """f'(x), the loss's transform's slope (_f)."""
+    return (1.0 + x).reciprocal() if loss == "log1p" else torch.full_like(x, 1.0 / scale)
+
+
 def _df2(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
     """f'(x)^2: the Gauss-Newton weight of a residual f(x_hat) - f(x) linearised at the target x."""
-    return (1.0 + x).reciprocal().square() if loss == "log1p" else torch.full_like(x, scale ** -2)
+    return _df(x, loss, scale).square()
 
 
 def _tensor(name: str, x, ndim: int, device: torch.device) -> torch.Tensor:
@@ -492,7 +508,7 @@ def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: li
     with torch.no_grad():
         sums = sums if sums is not None else _albedo_sums(prob, D, S, photo_bases)
         a, b = _solve_box(*(s.double() for s in sums), prob.config.rho_s_max)
-        albedos = (a.float(), b.float())
+        albedos = (a.to(D.dtype), b.to(D.dtype))
         own = [albedos if g.camera == prob.config.camera else _own_albedos(prob, g, WD, WS)
                for g, (WD, WS) in zip(prob.photos, photo_bases)]
     return albedos[0], albedos[1], own
@@ -519,7 +535,7 @@ def _photo_terms(g: _Photos, WD: torch.Tensor, WS: torch.Tensor) -> list:
 def _own_albedos(prob: _Problem, g: _Photos, WD: torch.Tensor, WS: torch.Tensor) -> tuple:
     """The closed-form albedos of one photo group alone (_projected)."""
     with torch.no_grad():
-        return tuple(x.float() for x in _solve_box(*(e.double() for e in _photo_terms(g, WD, WS)),
+        return tuple(x.to(WD.dtype) for x in _solve_box(*(e.double() for e in _photo_terms(g, WD, WS)),
                                                    prob.config.rho_s_max))
 
 
@@ -684,20 +700,141 @@ def _result(prob: _Problem, geom: dict, rho_d, rho_s, history, t_start, info) ->
     return FitResult(**out, history=[float(h) for h in history], seconds=time.perf_counter() - t_start, info=info)
 
 
-def _jacobian(prob: _Problem, q: torch.Tensor, r: torch.Tensor, to_numbers=None) -> torch.Tensor:
-    """(n, residuals, 5) forward-difference Jacobian (FitConfig.fd_step) of _residuals at q, whose value is r;
-    with `to_numbers`, of _residuals(to_numbers(q)) (another parameterisation of the same 5 numbers)."""
+def _forward_difference(prob: _Problem, q: torch.Tensor, r: torch.Tensor, to_numbers=None) -> torch.Tensor:
+    """(n, 5, residuals) forward-difference Jacobian (FitConfig.fd_step) of _residuals at q, whose value is r, row j
+    the derivative along number j; with `to_numbers`, of _residuals(to_numbers(q)) (another parameterisation of
+    the same 5 numbers)."""
     h = prob.config.fd_step
-    eye = torch.eye(GEOMETRY_SIZE, device=q.device) * h
+    eye = torch.eye(GEOMETRY_SIZE, dtype=q.dtype, device=q.device) * h
     f = to_numbers or (lambda x: x)
-    return torch.stack([(_residuals(prob, f(q + eye[j])) - r) / h for j in range(GEOMETRY_SIZE)], 2)
+    return torch.stack([(_residuals(prob, f(q + eye[j])) - r) / h for j in range(GEOMETRY_SIZE)], 1)
+
+
+def _frame_derivatives(prob: _Problem, q: torch.Tensor) -> tuple[dict, torch.Tensor, torch.Tensor]:
+    """The geometry of the numbers q and the inputs of twin.optics.jvp.basis_jvp for the 5 numbers' directions:
+    d_frame (n, 5, 3, 3), the derivatives of the local frame's rows (t, n x t, n) along u, v, theta (zero along
+    the log alphas), and d_log_alpha (n, 5, 2)."""
+    def rows(g):
+        f = _frame_of(g, prob.frame)
+        return torch.stack([f["tangent"], torch.linalg.cross(f["normal"], f["tangent"], dim=-1), f["normal"]], 1)
+
+    n = q.shape[0]
+    g3 = q[:, :3]
+    d_frame = torch.zeros(n, GEOMETRY_SIZE, 3, 3, dtype=q.dtype, device=q.device)
+    for j in range(3):
+        d_frame[:, j] = torch.func.jvp(rows, (g3,), (torch.eye(3, dtype=q.dtype, device=q.device)[j].expand(n, 3),))[1]
+    d_log_alpha = torch.zeros(n, GEOMETRY_SIZE, 2, dtype=q.dtype, device=q.device)
+    d_log_alpha[:, 3, 0] = d_log_alpha[:, 4, 1] = 1.0
+    return _log_geometry(q, prob.frame), d_frame, d_log_alpha
+
+
+def _albedo_derivatives(sums: list, dsums: list, a: torch.Tensor, b: torch.Tensor, rho_s_max: float):
+    """(da, db) (n, J, 3) of the closed-form albedos (_solve_box) along J directions, from the quadratic's sums
+    (dd, dm, ds, ss, sm) (n, 3) and their derivatives (n, J, 3): the minimiser's own derivative (variable
+    projection, Golub & Pereyra 1973), by the implicit function theorem on the free coordinates, 0 for one that
+    sits on its box edge."""
+    dtype = a.dtype
+    dd, dm, ds, ss, sm = (x[:, None].double() for x in sums)
+    ddd, ddm, dds, dss, dsm = (x.double() for x in dsums)
+    a, b = a[:, None].double(), b[:, None].double()
+    r1 = ddm - a * ddd - b * dds  # d(dm) - d(dd) a - d(ds) b
+    r2 = dsm - a * dds - b * dss
+    a_free = (a > 0) & (a < 1)
+    b_free = (b > 0) & (b < rho_s_max)
+    det = (dd * ss - ds * ds).clamp_min(1e-30)
+    both = a_free & b_free
+    da = torch.where(both, (ss * r1 - ds * r2) / det, torch.where(a_free, r1 / dd.clamp_min(1e-30), 0.0))
+    db = torch.where(both, (dd * r2 - ds * r1) / det, torch.where(b_free, r2 / ss.clamp_min(1e-30), 0.0))
+    return da.to(dtype), db.to(dtype)
+
+
+def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
+    """(n, 5, residuals) Jacobian of _residuals at q, exact: the bases' derivatives from one launch of
+    twin.optics.jvp.basis_jvp per camera, the closed-form albedos' derivatives (_albedo_derivatives), the
+    chain rule through the projections onto the photos' weights and the loss's transform. Costs about one
+    evaluation of the forward model per camera where the forward difference takes five (FitConfig.jacobian)."""
+    from twin.optics.jvp import basis_jvp
+
+    c = prob.config
+    geom, d_frame, d_log_alpha = _frame_derivatives(prob, q)
+    ratio = prob.ratio
+    bases = {}
+    for cam in [c.camera] + [g.camera for g in prob.photos if prob.has_lines]:
+        if cam not in bases:
+            val, dD0, dS0 = basis_jvp(prob.upper_rig, prob.pos, geom["normal"], geom["tangent"], geom["alpha_x"],
+                                      geom["alpha_y"], d_frame, d_log_alpha, camera=cam, visibility=True)
+            # the same products as _bases (so the same numbers), and the derivatives in network units
+            m = val.permute(1, 2, 0) * LUMITEXEL_SCALE
+            bases[cam] = (m[..., 0:1] * ratio[0], m[..., 1:2] * ratio[1], dD0 * LUMITEXEL_SCALE,
+                          dS0 * LUMITEXEL_SCALE)
+    D, S, dD0, dS0 = bases[c.camera]
+
+    def projected(cam, W):
+        """(W D, W S) (3, n, K) and their derivatives (3, n, J, K): channel c's ratio folded into W."""
+        Dc, Sc, dDc, dSc = bases[cam]
+        out = [torch.matmul(x.permute(2, 0, 1), W) for x in (Dc, Sc)]
+        n, J, L = dDc.shape
+        for dx, rho in ((dDc, ratio[0]), (dSc, ratio[1])):
+            flat = dx.reshape(n * J, L)
+            out.append(torch.stack([flat @ (rho[:, k, None] * W[k]) for k in range(3)]).reshape(3, n, J, -1))
+        return out
+
+    pb = [projected(g.camera, g.W) for g in prob.photos] if prob.has_lines else []
+    # the shared albedos: the lumitexels' quadratic plus config.camera's photos (_albedo_sums), and derivatives
+    w, m = prob.weight, prob.target
+    sums = _albedo_sums(prob, D, S, [x[:2] for x in pb])
+    wr0, wr1 = w * ratio[0], w * ratio[1]
+    bmm = lambda dx, y: torch.bmm(dx, y)  # noqa: E731  (n, J, L) x (n, L, 3) -> (n, J, 3)
+    dsums = [2 * bmm(dD0, wr0 * D), bmm(dD0, wr0 * m), bmm(dD0, wr0 * S) + bmm(dS0, wr1 * D), 2 * bmm(dS0, wr1 * S),
+             bmm(dS0, wr1 * m)]
+    own_d = []
+    for g, (WD, WS, dWD, dWS) in zip(prob.photos, pb):
+        terms = _photo_dterms(g, WD, WS, dWD, dWS)
+        if g.camera == c.camera:
+            dsums = [x + t for x, t in zip(dsums, terms)]
+        own_d.append(terms)
+    rd, rs, own = _projected(prob, D, S, [x[:2] for x in pb], sums)
+    da, db = _albedo_derivatives(sums, dsums, rd, rs, c.rho_s_max)
+    m_hat = rd[:, None] * D + rs[:, None] * S
+    fp = _df(m_hat, c.loss, prob.scale_m) / math.sqrt(m_hat[0].numel())
+    # (n, J, L, 3): f'(m_hat) d m_hat = f'(m_hat) (da D + rd dD + db S + rs dS), in place (the largest tensor here)
+    dm = torch.mul(dD0[..., None], (rd[:, None] * ratio[0])[:, None])
+    dm.addcmul_(dS0[..., None], (rs[:, None] * ratio[1])[:, None])
+    dm.addcmul_(da[:, :, None], D[:, None]).addcmul_(db[:, :, None], S[:, None]).mul_(fp[:, None])
+    out = [dm.reshape(prob.n, GEOMETRY_SIZE, -1)]
+    for g, (WD, WS, dWD, dWS), (a, b), terms in zip(prob.photos, pb, own, own_d):
+        if g.camera == c.camera:
+            ga, gb = da, db
+        else:  # its own albedos (_projected), and their own derivatives
+            sums_g = _photo_terms(g, WD, WS)
+            ga, gb = _albedo_derivatives(sums_g, terms, a, b, c.rho_s_max)
+        M_hat = a.T[:, :, None] * WD + b.T[:, :, None] * WS
+        dM = (ga.permute(2, 0, 1)[..., None] * WD[:, :, None] + gb.permute(2, 0, 1)[..., None] * WS[:, :, None]
+              + a.T[:, :, None, None] * dWD + b.T[:, :, None, None] * dWS)  # (3, n, J, K)
+        fpm = _df(M_hat, c.loss, g.scale) * math.sqrt(g.lam / M_hat[:, 0].numel())
+        out.append((fpm[:, :, None] * dM).permute(1, 2, 0, 3).reshape(prob.n, GEOMETRY_SIZE, -1))
+    return torch.cat(out, dim=2)
+
+
+def _photo_dterms(g: _Photos, WD, WS, dWD, dWS) -> list:
+    """The derivatives (n, J, 3) of a photo group's share of the albedo sums (_photo_terms) along J directions,
+    for photo bases (3, n, K) and their derivatives (3, n, J, K)."""
+    Mw, M = g.M_w[:, :, None], g.M[:, :, None]
+    WD, WS = WD[:, :, None], WS[:, :, None]
+    return [(x * Mw).sum(3).permute(1, 2, 0) for x in (2 * WD * dWD, dWD * M, dWD * WS + WD * dWS, 2 * WS * dWS,
+                                                         dWS * M)]
+
+
+def _jacobian(prob: _Problem, q: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """(n, 5, residuals) Jacobian of _residuals at the numbers q (value r), as FitConfig.jacobian asks."""
+    return _analytic_jacobian(prob, q) if prob.config.jacobian == "analytic" else _forward_difference(prob, q, r)
 
 
 def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -> torch.Tensor:
     """Levenberg-Marquardt on the numbers q (n, 5) = [u, v, theta, log alpha_x, log alpha_y] of every texel at
     once (texels are independent: each has its own 5 x 5 system and damping mu). The Jacobian of the residuals
-    (_residuals, the closed-form albedos re-solved at every evaluation: variable projection) is taken by
-    forward differences (FitConfig.fd_step), 5 more evaluations of the forward model per iteration. A step is
+    (_residuals, the closed-form albedos re-solved at every evaluation: variable projection) is analytic or by
+    forward differences, 5 more evaluations of the residuals per iteration (FitConfig.jacobian). A step is
     kept where it lowers the texel's loss (then mu / 3), else refused (mu x 4; Marquardt's scaling by the
     diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing). log alpha is
     clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
@@ -717,8 +854,8 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
             if idx.numel():
                 part, qa, ra = prob.part(idx), q[idx], r[idx]
                 J = _jacobian(part, qa, ra)
-                A = J.transpose(1, 2) @ J
-                grad = (J.transpose(1, 2) @ ra[..., None])[..., 0]
+                A = J @ J.transpose(1, 2)
+                grad = (J @ ra[..., None])[..., 0]
                 d = torch.diagonal(A, dim1=1, dim2=2)
                 damp = mu[idx, None] * (d + 1e-6 * d.sum(1, keepdim=True) + 1e-20)
                 step = torch.linalg.solve(A + torch.diag_embed(damp), -grad[..., None])[..., 0]
@@ -789,6 +926,28 @@ def _from_tensor(x: torch.Tensor) -> torch.Tensor:
     """The inverse of _to_tensor (theta in (-pi/2, pi/2], alpha_x >= alpha_y)."""
     d = torch.hypot(x[:, 3], x[:, 4])
     return torch.stack([x[:, 0], x[:, 1], torch.atan2(x[:, 4], x[:, 3]) / 2, x[:, 2] + d, x[:, 2] - d], 1)
+
+
+def _tensor_jacobian(prob: _Problem, x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """(n, 5, residuals) Jacobian of _residuals(_from_tensor(x)) (value r) in the tensor coordinates x. The
+    analytic one (FitConfig.jacobian) by the chain rule through _from_tensor, whose angle is undefined where the
+    lobe is isotropic (d = 0): there, for d < 1e-4, by forward differences in x, which stay smooth (its error
+    elsewhere: float32's epsilon / d relative, from the tangent angle's 1 / d)."""
+    if prob.config.jacobian != "analytic":
+        return _forward_difference(prob, x, r, _from_tensor)
+    q = _from_tensor(x)
+    d = torch.hypot(x[:, 3], x[:, 4])
+    ds = d.clamp_min(1e-30)
+    cos, sin = x[:, 3] / ds, x[:, 4] / ds
+    dq = torch.zeros(x.shape[0], GEOMETRY_SIZE, GEOMETRY_SIZE, dtype=x.dtype, device=x.device)  # dq_j / dx_k
+    dq[:, 0, 0] = dq[:, 1, 1] = dq[:, 3, 2] = dq[:, 4, 2] = 1.0
+    dq[:, 2, 3], dq[:, 2, 4] = -sin / (2 * ds), cos / (2 * ds)  # theta = atan2(s, c) / 2
+    dq[:, 3, 3], dq[:, 3, 4], dq[:, 4, 3], dq[:, 4, 4] = cos, sin, -cos, -sin  # m +- hypot(c, s)
+    J = dq.transpose(1, 2) @ _analytic_jacobian(prob, q)
+    near = torch.nonzero(d < 1e-4).flatten()
+    if near.numel():
+        J[near] = _forward_difference(prob.part(near), x[near], r[near], _from_tensor)
+    return J
 
 
 def _colour_weights(rho_d: torch.Tensor, grid_shape, lam: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -894,9 +1053,9 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
                 total += float(rd.square().sum())
                 count = r.shape[1]
                 if jac:
-                    J = _jacobian(part, xi, r, _from_tensor).double()
-                    Hs.append(J.transpose(1, 2) @ J)
-                    gs.append((J.transpose(1, 2) @ rd[..., None])[..., 0])
+                    J = _tensor_jacobian(part, xi, r).double()
+                    Hs.append(J @ J.transpose(1, 2))
+                    gs.append((J @ rd[..., None])[..., 0])
         return (torch.cat(rows), total, torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None, count)
 
     def prior(x):

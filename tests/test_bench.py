@@ -72,6 +72,24 @@ def test_bench_fit_forward_baseline_matches_to_the_bit_and_drift_fails(capsys, m
     assert rc == 1 and "fit_path_vs_tape_all_leds" in err
 
 
+JAC = ["bench", "fit-jacobian", "--rig", "mini", "--texels", "64", "--repeats", "1"]
+
+
+def test_bench_fit_jacobian_checks_the_analytic_one_and_a_one_percent_error_fails(capsys, monkeypatch):
+    rc, res, _ = _run(JAC, capsys)
+    assert rc == 0 and res["passed"] and set(res["seconds"]) == {"analytic", "baseline_forward_difference",
+                                                                  "residuals"}
+    c = res["checks"][0]
+    assert c["check"] == "analytic_vs_central_difference_jacobian" and c["median_rel_diff"] < c["bound"]
+    assert c["forward_difference_median_rel_diff"] > c["median_rel_diff"]  # the baseline's truncation, reported
+    import reconstruction.fitting as F
+
+    plain = F._analytic_jacobian
+    monkeypatch.setattr(F, "_analytic_jacobian", lambda *a: plain(*a) * 1.01)
+    rc, res, err = _run(JAC, capsys)
+    assert rc == 1 and "analytic_vs_central_difference_jacobian" in err
+
+
 CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--resolution", "32", "--scale", "0.5"]
 
 
