@@ -180,19 +180,15 @@ def register_bench(bench) -> None:
     s.add_argument("--texels", type=int, default=16384, help="synthetic texels timed (default: %(default)s)")
     s.add_argument("--network", help="a `hemicube train` run folder (default: the shipped one, else untrained)")
     s.set_defaults(func=cmd_bench)
-    s = bench.add_parser("fit-forward", help="seconds of one forward-model evaluation of the GGX fit, against the "
-                         "autograd path over every LED")
-    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
-    s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
-    s.add_argument("--texels", type=int, default=2304, help="texels evaluated at once (default: %(default)s, the "
-                   "mini rig's 48^2 grid)")
-    s.add_argument("--repeats", type=int, default=5, help="timed runs, the fastest reported (default: %(default)s)")
-    s.set_defaults(func=cmd_bench)
-    s = bench.add_parser("fit-jacobian", help="seconds of one Jacobian of the GGX fit's residuals, analytic, against "
-                         "forward differences")
-    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
-    s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
-    s.add_argument("--texels", type=int, default=2304, help="texels at once (default: %(default)s, the mini rig's "
-                   "48^2 grid)")
-    s.add_argument("--repeats", type=int, default=3, help="timed runs, the fastest reported (default: %(default)s)")
-    s.set_defaults(func=cmd_bench)
+    for name, what, repeats in (("fit-forward", "one forward-model evaluation of the GGX fit, against the autograd "
+                                 "path over every LED", 5),
+                                ("fit-jacobian", "one Jacobian of the GGX fit's residuals, analytic, against forward "
+                                 "differences", 3)):
+        s = bench.add_parser(name, help=f"seconds of {what}")
+        s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
+        s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda (default: %(default)s)")
+        s.add_argument("--texels", type=int, default=2304, help="texels at once (default: %(default)s, the mini "
+                       "rig's 48^2 grid)")
+        s.add_argument("--repeats", type=int, default=repeats, help="timed runs, the fastest reported (default: "
+                       "%(default)s)")
+        s.set_defaults(func=cmd_bench)

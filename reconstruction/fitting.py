@@ -836,7 +836,8 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
     (_residuals, the closed-form albedos re-solved at every evaluation: variable projection) is analytic or by
     forward differences, 5 more evaluations of the residuals per iteration (FitConfig.jacobian). A step is
     kept where it lowers the texel's loss (then mu / 3), else refused (mu x 4; Marquardt's scaling by the
-    diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing). log alpha is
+    diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing; the Jacobian of a
+    texel whose step was refused is not taken again: its numbers did not move). log alpha is
     clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
     FitConfig.tolerance (relative) or whose mu exceeds 1e10 drop out. history[i] += the sum of the losses
     after iteration i."""
@@ -849,13 +850,21 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
         loss = r.square().sum(1)
         mu = torch.full_like(loss, c.lm_damping)
         active = torch.ones_like(loss, dtype=torch.bool)
+        # the Gauss-Newton system of each texel, kept while its numbers stay (a refused step moves nothing)
+        AA = torch.zeros(prob.n, GEOMETRY_SIZE, GEOMETRY_SIZE, dtype=q.dtype, device=q.device)
+        gg = torch.zeros(prob.n, GEOMETRY_SIZE, dtype=q.dtype, device=q.device)
+        fresh = torch.zeros_like(active)
         for i in range(c.steps):
             idx = torch.nonzero(active).flatten()
             if idx.numel():
+                stale = idx[~fresh[idx]]
+                if stale.numel():
+                    J = _jacobian(prob.part(stale), q[stale], r[stale])
+                    AA[stale] = J @ J.transpose(1, 2)
+                    gg[stale] = (J @ r[stale, :, None])[..., 0]
+                    fresh[stale] = True
                 part, qa, ra = prob.part(idx), q[idx], r[idx]
-                J = _jacobian(part, qa, ra)
-                A = J @ J.transpose(1, 2)
-                grad = (J @ ra[..., None])[..., 0]
+                A, grad = AA[idx], gg[idx]
                 d = torch.diagonal(A, dim1=1, dim2=2)
                 damp = mu[idx, None] * (d + 1e-6 * d.sum(1, keepdim=True) + 1e-20)
                 step = torch.linalg.solve(A + torch.diag_embed(damp), -grad[..., None])[..., 0]
@@ -869,6 +878,7 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
                 r[idx] = torch.where(ok[:, None], rn, ra)
                 loss[idx] = torch.where(ok, ln, loss[idx])
                 mu[idx] = torch.where(ok, mu[idx] / 3, mu[idx] * 4)
+                fresh[idx] &= ~ok
                 active[idx] = ~((ok & (gain < c.tolerance)) | (mu[idx] > 1e10))
             history[i] += float(loss.sum())
     return q

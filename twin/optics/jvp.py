@@ -137,8 +137,8 @@ def basis_jvp(rig, position, normal, tangent, alpha_x, alpha_y, d_frame, d_log_a
     (P, J, 2). Returns torch tensors val (2, P, L), dD (P, J, L), dS (P, J, L) on that device (no autograd)."""
     import torch
 
-    from twin.optics.inputs import CONVENTIONS, _init, _led_inputs, make_options, rig_arrays
-    from twin.optics.torch_ops import _wp_device
+    from twin.optics.inputs import CONVENTIONS, _init, _led_inputs
+    from twin.optics.torch_ops import _wp_device, rig_setup
 
     if g != "separable" or fresnel != "schlick":
         raise ValueError(f"basis_jvp implements the separable Smith G1 and Schlick's Fresnel (the reference's GGX "
@@ -154,11 +154,7 @@ def basis_jvp(rig, position, normal, tangent, alpha_x, alpha_y, d_frame, d_log_a
     dtype = position.dtype
     device = _wp_device(position)
     _init()
-    arrays = rig_arrays(rig, device, "float64" if double else "float32")
-    o = make_options(rig, arrays, convention, g, fresnel, eta, visibility)
-    cam = camera or next(iter(rig.cameras))
-    if cam not in arrays.cameras:
-        raise KeyError(f"rig {rig.name!r} has no camera {cam!r}; it has {list(rig.cameras)}")
+    arrays, o, cam = rig_setup((rig, convention, camera, g, fresnel, eta, visibility), device, double)
 
     def w(x, t):
         return wp.from_torch(x.detach().to(dtype).contiguous(), dtype=t)
@@ -172,7 +168,7 @@ def basis_jvp(rig, position, normal, tangent, alpha_x, alpha_y, d_frame, d_log_a
               if position.device.type == "cuda" else None)
     with stream or contextlib.nullcontext():
         pts = point_inputs(w(position, vec), w(normal, vec), w(tangent, vec), None, None, w(alpha_x, scal),
-                           w(alpha_y, scal), w(beta, scal), arrays.cameras[cam], device)
+                           w(alpha_y, scal), w(beta, scal), cam, device)
         wp.launch(basis_jvp_kernel, dim=(P, L),
                   inputs=[pts[0], pts[1], pts[2], pts[5], pts[6], pts[7], w(d_frame, mat), w(d_log_alpha, vec2),
                           *_led_inputs(arrays, CONVENTIONS[convention]), o],

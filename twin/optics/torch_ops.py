@@ -24,21 +24,28 @@ def _wp_device(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
 
-def _launch(setup, pos, n, t, rd, rs, ax, ay, beta, w, grad: bool):
-    """Run the lumitexel kernel (and, with pattern weights w, the projection) on the inputs: (output, the
-    Warp input arrays, the tape). With `grad`, the inputs are copied into arrays that carry gradients (module
-    docstring) and the launches are recorded on a tape; without, the kernels read torch's memory in place and
-    nothing is recorded (the fit's evaluations under torch.no_grad: the same values, no copies)."""
+def rig_setup(setup, device: str, double: bool):
+    """The rig's device arrays, the kernels' Options and the camera's centre array for `setup` = (rig, convention,
+    camera, g, fresnel, eta, visibility); a KeyError naming the rig's cameras for an unknown one."""
     rig, convention, camera, g, fresnel, eta, visibility = setup
-    dt = pos.dtype
-    device = _wp_device(pos)
-    double = dt == torch.float64
-    vec, scal = (wp.vec3d, wp.float64) if double else (wp.vec3f, wp.float32)
     arrays = rig_arrays(rig, device, "float64" if double else "float32")
     o = make_options(rig, arrays, convention, g, fresnel, eta, visibility)
     cam_name = camera or next(iter(rig.cameras))
     if cam_name not in arrays.cameras:
         raise KeyError(f"rig {rig.name!r} has no camera {cam_name!r}; it has {list(rig.cameras)}")
+    return arrays, o, arrays.cameras[cam_name]
+
+
+def _launch(setup, pos, n, t, rd, rs, ax, ay, beta, w, grad: bool):
+    """Run the lumitexel kernel (and, with pattern weights w, the projection) on the inputs: (output, the
+    Warp input arrays, the tape). With `grad`, the inputs are copied into arrays that carry gradients (module
+    docstring) and the launches are recorded on a tape; without, the kernels read torch's memory in place and
+    nothing is recorded (the fit's evaluations under torch.no_grad: the same values, no copies)."""
+    rig, convention = setup[:2]
+    device = _wp_device(pos)
+    double = pos.dtype == torch.float64
+    vec, scal = (wp.vec3d, wp.float64) if double else (wp.vec3f, wp.float32)
+    arrays, o, cam = rig_setup(setup, device, double)
 
     def copy(x, dtype):
         a = wp.from_torch(x.detach().contiguous(), dtype=dtype)
@@ -50,7 +57,7 @@ def _launch(setup, pos, n, t, rd, rs, ax, ay, beta, w, grad: bool):
     m = (wp.zeros if grad else wp.empty)((P, L), dtype=vec, device=device, requires_grad=grad)
     tape = wp.Tape() if grad else None
     with tape or contextlib.nullcontext():
-        pts = K.point_inputs(*ins, arrays.cameras[cam_name], device)
+        pts = K.point_inputs(*ins, cam, device)
         wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*pts, *_led_inputs(arrays, CONVENTIONS[convention]), o],
                   outputs=[m], device=device)
         out = m
