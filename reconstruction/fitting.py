@@ -784,7 +784,7 @@ def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
     w, m = prob.weight, prob.target
     sums = _albedo_sums(prob, D, S, [x[:2] for x in pb])
     wr0, wr1 = w * ratio[0], w * ratio[1]
-    bmm = lambda dx, y: torch.bmm(dx, y)  # noqa: E731  (n, J, L) x (n, L, 3) -> (n, J, 3)
+    bmm = torch.bmm  # (n, J, L) x (n, L, 3) -> (n, J, 3): the sums' derivatives (_albedo_sums)
     dsums = [2 * bmm(dD0, wr0 * D), bmm(dD0, wr0 * m), bmm(dD0, wr0 * S) + bmm(dS0, wr1 * D), 2 * bmm(dS0, wr1 * S),
              bmm(dS0, wr1 * m)]
     own_d = []
