@@ -1,9 +1,16 @@
+"""TF32 against float32 fine-tuning on the paper rig (docs/performance.md, "Fine-tuning in TF32"), as run on an H100:
+
+    python docs/bench/finetune_tf32_2026-11-25.py 65536 > finetune_tf32_paper_h100_65536_2026-11-25.json
+
+The shipped paper-rig network, `hemicube bench reconstruct`'s synthetic texels (seed 0), the paper's fixed 350 steps,
+float32, then TF32 matrix products, then float32 again; per-texel objective of pass 3 on the kept lines and the
+held-out line's relative error, each evaluated in float32. A record of how the numbers were measured.
+"""
 import sys, time, json, numpy as np, torch, twin
 from reconstruction.bench import _texels
 from reconstruction.pipeline import load_network
 from reconstruction.latents import decode
 from reconstruction.finetune import FinetuneConfig, finetune, simulate_lines
-from twin.capture.pattern_sets import linear_lights
 n = int(sys.argv[1]); out = {}
 rig = twin.load_rig("paper"); dev = "cuda:0"
 model = load_network("pretrained", rig, dev)
