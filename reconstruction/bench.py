@@ -101,8 +101,7 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     from .pipeline import load_network
     from .train import TrainConfig
 
-    if isinstance(texels, bool) or not isinstance(texels, int) or texels < 1:
-        raise ValueError(f"texels must be a positive integer, got {texels!r}")
+    _positive_int("texels", texels)
     rig = twin.load_rig(rig_name)
     dev = _wp_device(device)  # "cpu" or "cuda:N": one name for torch and Warp
     sync = lambda: _sync(torch.device(dev))  # noqa: E731  (timings must include the queued GPU work)
@@ -170,13 +169,18 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     }, [check])
 
 
+def _positive_int(name: str, v) -> None:
+    """A clear error, before any work, for a count that is not a positive integer."""
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"{name} must be a positive integer, got {v!r}")
+
+
 def _random_points(rig, texels: int, seed: int, device: str):
     """Seeded synthetic texels of the fit's benches: positions over 90% of the sample, normals within ~10 deg of
     the plane's, tangents along its x axis, roughness log-uniform in [0.011, 0.37]; torch tensors on `device`."""
     import torch
 
-    if isinstance(texels, bool) or not isinstance(texels, int) or texels < 1:
-        raise ValueError(f"texels must be a positive integer, got {texels!r}")
+    _positive_int("texels", texels)
     g = torch.Generator().manual_seed(seed)
     half = 0.45 * rig.sample.max_size
     pos = torch.as_tensor(rig.sample.origin, dtype=torch.float32).repeat(texels, 1)
@@ -196,6 +200,7 @@ def bench_fit_forward(rig_name="mini", device="cpu", texels=2304, repeats=5, see
     gradients), against the same-run baseline of the path the fit took before: the autograd bridge's tape and
     copies (twin.optics.torch_ops.WarpForward) over all of the rig's LEDs, then the upper ones selected. The
     two must agree to the bit (rtol 0): they run the same kernel on the same numbers."""
+    _positive_int("repeats", repeats)
     from dataclasses import replace
 
     import torch
@@ -254,6 +259,7 @@ def bench_fit_jacobian(rig_name="mini", device="cpu", texels=2304, repeats=3, se
     residuals. The check: per texel and number, |J_analytic - J_central| / |J_central| over the residuals for
     central differences of the same step, its median <= JACOBIAN_MEDIAN_BOUND; the forward differences'
     difference is reported beside it."""
+    _positive_int("repeats", repeats)
     from dataclasses import replace
 
     import torch

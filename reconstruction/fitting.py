@@ -455,8 +455,17 @@ def _bases(prob: _Problem, geom: dict, camera: str | None = None) -> tuple[torch
     """D, S (n, L, 3): the lumitexels of unit diffuse and unit specular albedo, from one launch (module
     docstring): rho_d = (1, 0, 0), rho_s = (0, 1, 0); the other channels by the LEDs' intensity ratios."""
     e = torch.eye(3, device=prob.pos.device)
-    m = _lumitexels(prob, geom, e[0].expand(prob.n, 3), e[1].expand(prob.n, 3), camera)
+    return _split(prob, _lumitexels(prob, geom, e[0].expand(prob.n, 3), e[1].expand(prob.n, 3), camera))
+
+
+def _split(prob: _Problem, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """D, S (n, L, 3) of the launch's channels 0 (diffuse) and 1 (specular), m (n, L, >= 2), network units."""
     return m[..., 0:1] * prob.ratio[0], m[..., 1:2] * prob.ratio[1]
+
+
+def _project(W: torch.Tensor, D: torch.Tensor, S: torch.Tensor) -> list:
+    """(W D, W S), each (3, n, K), for bases (n, L, 3) and a photo group's weights W (3, L, K)."""
+    return [torch.matmul(x.permute(2, 0, 1), W) for x in (D, S)]
 
 
 def _photo_bases(prob: _Problem, geom: dict, D: torch.Tensor, S: torch.Tensor) -> list:
@@ -469,7 +478,7 @@ def _photo_bases(prob: _Problem, geom: dict, D: torch.Tensor, S: torch.Tensor) -
     for g in prob.photos:
         if g.camera not in bases:
             bases[g.camera] = _bases(prob, geom, g.camera)
-        out.append(tuple(torch.matmul(x.permute(2, 0, 1), g.W) for x in bases[g.camera]))
+        out.append(tuple(_project(g.W, *bases[g.camera])))
     return out
 
 
@@ -764,15 +773,14 @@ def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
             val, dD0, dS0 = basis_jvp(prob.upper_rig, prob.pos, geom["normal"], geom["tangent"], geom["alpha_x"],
                                       geom["alpha_y"], d_frame, d_log_alpha, camera=cam, visibility=True)
             # the same products as _bases (so the same numbers), and the derivatives in network units
-            m = val.permute(1, 2, 0) * LUMITEXEL_SCALE
-            bases[cam] = (m[..., 0:1] * ratio[0], m[..., 1:2] * ratio[1], dD0 * LUMITEXEL_SCALE,
+            bases[cam] = (*_split(prob, val.permute(1, 2, 0) * LUMITEXEL_SCALE), dD0 * LUMITEXEL_SCALE,
                           dS0 * LUMITEXEL_SCALE)
     D, S, dD0, dS0 = bases[c.camera]
 
     def projected(cam, W):
         """(W D, W S) (3, n, K) and their derivatives (3, n, J, K): channel c's ratio folded into W."""
         Dc, Sc, dDc, dSc = bases[cam]
-        out = [torch.matmul(x.permute(2, 0, 1), W) for x in (Dc, Sc)]
+        out = _project(W, Dc, Sc)
         n, J, L = dDc.shape
         for dx, rho in ((dDc, ratio[0]), (dSc, ratio[1])):
             flat = dx.reshape(n * J, L)

@@ -90,6 +90,14 @@ def test_bench_fit_jacobian_checks_the_analytic_one_and_a_one_percent_error_fail
     assert rc == 1 and "analytic_vs_central_difference_jacobian" in err
 
 
+@pytest.mark.parametrize("argv, message", [(["--repeats", "0"], "repeats must be a positive integer"),
+                                           (["--texels", "0"], "texels must be a positive integer")])
+@pytest.mark.parametrize("bench", ["fit-forward", "fit-jacobian"])
+def test_fit_benches_refuse_bad_counts_before_any_work(bench, argv, message, capsys):
+    assert main(["bench", bench, "--rig", "mini", *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
 CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--resolution", "32", "--scale", "0.5"]
 
 
