@@ -68,7 +68,7 @@ def test_basis_derivatives_match_central_differences_of_the_forward_model(upper,
         n, t, ax, ay, _ = geometry(u)
         e = np.eye(3)
         m = twin.lumitexels(rig, pos, n, t, np.tile(e[0], (P, 1)), np.tile(e[1], (P, 1)), ax, ay, camera="primary",
-                            dtype="float64", visibility=True)
+                            dtype="float64", visibility=True, device=device)
         return m[..., 0], m[..., 1]
 
     h = 1e-6
@@ -100,13 +100,13 @@ def test_basis_jvp_refuses_what_it_does_not_implement(upper):
         basis_jvp(rig, *args, torch.zeros(2, 1, 3), torch.zeros(2, 1, 2))
 
 
-def _problem64(mini, keep, loss, seed=1, P=40):
+def _problem64(mini, keep, loss, seed=1, P=40, device="cpu"):
     """A fit problem in float64 (the fit builds float32; every tensor is cast): noisy targets of random texels,
     the lumitexels, the primary view's 64 lines and 16 secondary-view photos, so the albedos hit their box."""
     g, pos, n, t, ax, ay = _points(mini, P, seed)
     rd, rs = g.uniform(0.05, 0.8, (P, 3)), g.uniform(0.1, 3, (P, 3))
     W = linear_lights(mini).weights.astype(np.float32)
-    kw = dict(visibility=True)
+    kw = dict(visibility=True, device=device)
     m = twin.lumitexels(mini, pos, n, t, rd, rs, ax, ay, camera="primary", **kw)[:, keep] * LUMITEXEL_SCALE
     lines = twin.measurements(mini, pos, n, t, rd, rs, ax, ay, patterns=W, camera="primary", **kw) * LUMITEXEL_SCALE
     sec = twin.measurements(mini, pos, n, t, rd, rs, ax, ay, patterns=W[:16], camera="secondary",
@@ -115,13 +115,13 @@ def _problem64(mini, keep, loss, seed=1, P=40):
     def noise(x):
         return x * (1 + 0.05 * g.normal(size=x.shape)).clip(0.5)
 
-    prob = F._problem(mini, pos, noise(m), noise(lines), W[:, keep], None, F.FitConfig(loss=loss),
+    prob = F._problem(mini, pos, noise(m), noise(lines), W[:, keep], None, F.FitConfig(loss=loss, device=device),
                       secondary=(noise(sec), W[:16, keep]))
     cast = {f.name: getattr(prob, f.name).double() for f in fields(prob) if torch.is_tensor(getattr(prob, f.name))}
     cast["photos"] = tuple(replace(p, **{k: getattr(p, k).double() for k in ("M", "M_f", "M_w", "W")})
                            for p in prob.photos)
     q = torch.as_tensor(np.c_[g.normal(size=(P, 2)) * 0.2, g.uniform(0, 3, P), np.log(ax * 1.3), np.log(ay * 0.8)],
-                        dtype=torch.float64)
+                        dtype=torch.float64, device=device)
     return replace(prob, **cast), q
 
 
@@ -133,16 +133,17 @@ def _rel(J, ref):
 
 
 def _central(prob, q, to_numbers=lambda x: x, h=1e-5):
-    e = torch.eye(F.GEOMETRY_SIZE, dtype=q.dtype) * h
+    e = torch.eye(F.GEOMETRY_SIZE, dtype=q.dtype, device=q.device) * h
     return torch.stack([(F._residuals(prob, to_numbers(q + e[j])) - F._residuals(prob, to_numbers(q - e[j])))
                         / (2 * h) for j in range(F.GEOMETRY_SIZE)], 1)
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("loss", ["log1p", "mse"])
-def test_fit_jacobian_matches_central_differences(mini, upper, loss):
+def test_fit_jacobian_matches_central_differences(mini, upper, loss, device):
     """The whole residual vector's Jacobian (variable projection: the albedos re-solved with the geometry,
     including those clipped to their box; the secondary view's own albedos; the loss's transform)."""
-    prob, q = _problem64(mini, upper[1], loss)
+    prob, q = _problem64(mini, upper[1], loss, device=device)
     J = F._analytic_jacobian(prob, q)
     ref = _central(prob, q)
     assert J.shape == ref.shape == (q.shape[0], F.GEOMETRY_SIZE, F._residuals(prob, q).shape[1])
