@@ -20,6 +20,7 @@ def cmd_validate(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     import calibration.cli
+    import hemicube.design
     import reconstruction.cli
     import twin.cli
 
@@ -28,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     twin.cli.register(sub)
     reconstruction.cli.register(sub)
     calibration.cli.register(sub)
+    hemicube.design.register(sub)
 
     s = sub.add_parser("validate", help="the main job: check the twin end to end and report")
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")

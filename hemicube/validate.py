@@ -34,8 +34,10 @@ def _sample_name(sample: str) -> str:
 
 
 def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int | None, seed: int,
-               progress: bool) -> tuple[dict, list, dict]:
-    """Simulate a capture, reconstruct it, score it: (metrics, threshold rows, report paths)."""
+               progress: bool, network: str = "pretrained", learned=None) -> tuple[dict, list, dict]:
+    """Simulate a capture, reconstruct it, score it: (metrics, threshold rows, report paths). `learned` (a
+    PatternSet of 2K frames) and `network` (a `hemicube train` run folder) capture and decode with another
+    network's patterns (a capture design, hemicube.design) instead of the rig's own."""
     from dataclasses import replace
 
     from reconstruction.metrics import check
@@ -45,8 +47,8 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int 
     from twin.capture.runner import capture
 
     resolution = resolution or ReconstructConfig.resolution
-    cap = capture(rig_obj, sample, output / "capture", seed=seed, device=device, progress=progress)
-    config = replace(ReconstructConfig(), resolution=resolution, device=device)
+    cap = capture(rig_obj, sample, output / "capture", seed=seed, device=device, progress=progress, learned=learned)
+    config = replace(ReconstructConfig(), resolution=resolution, device=device, network=str(network))
     recon = reconstruct(cap, output / "reconstruction", config, progress=progress, rig=rig_obj)
     metrics, panels = evaluate(cap, recon, rig_obj, device=device)
     thresholds = thresholds_for(rig_obj.name, resolution, str(sample))

@@ -28,8 +28,10 @@ def cmd_train(args) -> int:
                               ("checkpoint_every", args.checkpoint_every),
                               ("pair_fraction", args.pair_fraction), ("dropout", args.dropout),
                               ("measurement_noise", args.measurement_noise),
-                              ("architecture", args.architecture))
+                              ("architecture", args.architecture), ("patterns_per_view", args.patterns_per_view))
             if v is not None}
+    if args.materials is not None:
+        over["sampling"] = replace(cfg.sampling, materials=args.materials)
     cfg = replace(cfg, **over)
     try:
         m = train(cfg, args.output, progress=not args.no_progress, time_limit=args.time_limit)
@@ -150,6 +152,11 @@ def register(sub) -> None:
                    f"rig, or the compact one that ships (default: {tc.architecture})")
     s.add_argument("--measurement-noise", type=float, help=f"sigma of the multiplicative noise on the measurements in "
                    f"training (default: {tc.measurement_noise}, paper §6)")
+    s.add_argument("--patterns-per-view", type=int, help=f"K signed patterns, captured as 2K photos (default: "
+                   f"{tc.patterns_per_view}, the released network's)")
+    s.add_argument("--materials", help="training materials: '' uniform GGX ranges (default), 'suite:SEEDS' the "
+                   "material suite's compositions (database-like), 'maps:DIR' folders of OpenSVBRDF maps "
+                   "(reconstruction.data.SamplingConfig.materials)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="checkpoint and stop after this many "
                    "seconds (re-run to resume): chunks for lent machines (default: none)")
     s.add_argument("-o", "--output", required=True, help="run folder (re-run to resume)")

@@ -33,7 +33,7 @@ import twin
 
 __all__ = ["LUMITEXEL_SCALE", "SamplingConfig", "sample_parameters", "perturb_for_secondary", "synthesize",
            "white_reference", "swap_albedos", "pair_targets", "stream_seed", "LumitexelStream", "heldout_set",
-           "PARAM_KEYS", "SAME", "PERTURBED", "RANDOM"]
+           "PARAM_KEYS", "SAME", "PERTURBED", "RANDOM", "material_table"]
 
 # --- the lumitexel scale ----------------------------------------------------------------------------
 # The loss of the network (paper Eq. 3, reference §3.1) is sum_l [log(1 + m_hat) - log(1 + m)]^2. The log
@@ -84,6 +84,14 @@ class SamplingConfig:
     # "Fully random" replaces the material and the frame by a fresh draw; the texel stays where it is
     # (both cameras look at the same point of the plane; the position is where, not what, the texel is).
     random_keeps_position: bool = True
+    # Materials: "" draws rho_d, rho_s, alpha_x, alpha_y from the ranges above, independently (uniform GGX
+    # parameters). Otherwise the texels' materials are drawn jointly from a table of real texels, keeping
+    # the correlations of a database (paper §11.3 trains on "the distribution of our database"):
+    #   "suite:S1,S2,..."   every sample of the material suite (twin.materials.suite: the nine OpenSVBRDF
+    #                       categories and quadrants) at compositions (seeds) S1, S2, ... at 64² texels;
+    #   "maps:DIR"          every folder of OpenSVBRDF maps at DIR or directly under it.
+    # Grey (mean over RGB), clipped to the ranges above (the network's range). Frames as above.
+    materials: str = ""
 
     def __post_init__(self):
         for name in ("alpha_range", "rho_d_range", "rho_s_range"):
@@ -104,6 +112,57 @@ class SamplingConfig:
                              f"got {self.perturbed} and {self.random}")
         if not (self.perturb_material_sigma >= 0 and self.perturb_normal_sigma >= 0):
             raise ValueError("SamplingConfig perturbation sigmas must be >= 0")
+        if self.materials:
+            material_table(self)  # checked (and cached) now: a bad spec fails before any training
+
+
+MATERIAL_RESOLUTION = 64  # texels per side of each suite sample in a "suite:" table
+_TABLES: dict = {}
+
+
+def _suite_maps(spec: str) -> list:
+    from twin.materials.samples import SUITE, load_sample
+
+    try:
+        seeds = [int(v) for v in spec.split(",")]
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0:
+        raise ValueError(f"SamplingConfig.materials 'suite:{spec}' must name seeds: suite:0,1,2")
+    return [load_sample(f"{name}@{seed}", MATERIAL_RESOLUTION) for name in SUITE for seed in seeds]
+
+
+def _folder_maps(spec: str) -> list:
+    from pathlib import Path
+
+    from twin.materials.samples import SAMPLE_TOML, read_maps
+
+    root = Path(spec)
+    dirs = [root] if (root / SAMPLE_TOML).is_file() else sorted(p for p in root.glob("*") if (p / SAMPLE_TOML).is_file())
+    if not dirs:
+        raise ValueError(f"SamplingConfig.materials 'maps:{spec}': no folder of OpenSVBRDF maps there")
+    return [read_maps(d) for d in dirs]
+
+
+def material_table(config: SamplingConfig) -> np.ndarray:
+    """(N, 4) float64 grey materials [rho_d, rho_s, alpha_x, alpha_y] of `config.materials`, clipped to the
+    config's ranges; cached per spec."""
+    key = (config.materials, config.rho_d_range, config.rho_s_range, config.alpha_range)
+    if key not in _TABLES:
+        kind, _, arg = config.materials.partition(":")
+        loaders = {"suite": _suite_maps, "maps": _folder_maps}
+        if kind not in loaders or not arg:
+            raise ValueError(f"SamplingConfig.materials must be '', 'suite:SEEDS' or 'maps:DIR', got "
+                             f"{config.materials!r}")
+        rows = []
+        for m in loaders[kind](arg):
+            a = m.alpha.reshape(-1, 2)
+            rows.append(np.stack([m.rho_d.reshape(-1, 3).mean(1), m.rho_s.reshape(-1, 3).mean(1), a[:, 0], a[:, 1]], 1))
+        t = np.concatenate(rows).astype(np.float64)
+        for j, rng in enumerate((config.rho_d_range, config.rho_s_range, config.alpha_range, config.alpha_range)):
+            t[:, j] = np.clip(t[:, j], *rng)
+        _TABLES[key] = t
+    return _TABLES[key]
 
 
 # --- parameters -------------------------------------------------------------------------------------
@@ -152,12 +211,16 @@ def sample_parameters(n: int, config: SamplingConfig, rig, generator: torch.Gene
     t0 = cp * (ct * d - st * N) - sp * a
     psi = u[:, 4:5] * (2 * math.pi)
     tan = torch.cos(psi) * t0 + torch.sin(psi) * torch.linalg.cross(nrm, t0)
-    lo, hi = config.rho_d_range
-    rd = lo + (hi - lo) * u[:, 5]
-    lo, hi = config.rho_s_range
-    rs = lo + (hi - lo) * u[:, 6]
-    la, lb = (math.log(v) for v in config.alpha_range)
-    ax, ay = torch.exp(la + (lb - la) * u[:, 7]), torch.exp(la + (lb - la) * u[:, 8])
+    if config.materials:  # one texel of the table, all four numbers together (u[:, 6:9] drawn but unused)
+        table = torch.from_numpy(material_table(config))
+        rd, rs, ax, ay = table[(u[:, 5] * len(table)).long().clamp_max(len(table) - 1)].unbind(1)
+    else:
+        lo, hi = config.rho_d_range
+        rd = lo + (hi - lo) * u[:, 5]
+        lo, hi = config.rho_s_range
+        rs = lo + (hi - lo) * u[:, 6]
+        la, lb = (math.log(v) for v in config.alpha_range)
+        ax, ay = torch.exp(la + (lb - la) * u[:, 7]), torch.exp(la + (lb - la) * u[:, 8])
     f = torch.float32
     return {"position": pos.to(f), "normal": _unit(nrm).to(f), "tangent": _unit(tan).to(f),
             "rho_d": rd[:, None].expand(n, 3).to(f).contiguous(), "rho_s": rs[:, None].expand(n, 3).to(f).contiguous(),

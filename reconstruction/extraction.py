@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twin.capture.plan import BOTTOM, EMPTY_BOTTOM, LEARNED, LINES
+from twin.capture.plan import indices_of
 from twin.capture.session import CaptureSession
 
 # reference §6.1: the texture grid is the sample's bounding box shrunk by 6.5% of its extent on every side
@@ -104,11 +104,11 @@ class Measurements:
     valid: np.ndarray          # (N,) bool: seen by both views, every value finite
     pixel_primary: np.ndarray  # (N, 2) the texel centre's primary pixel (x, y)
     pixel_secondary: np.ndarray  # (N, 2) its aligned secondary pixel (x, y), NaN where unknown
-    # the 64 learned-pattern photos (+ and - frames, photos 0-63) of both views (the secondary through the
+    # the 2K learned-pattern photos (+ and - frames, photos 0 to 2K-1; 64 in the reference's plan) of both views (the secondary through the
     # alignment), RGB, and their patterns' relative drive on the upper LEDs: non-negative measurements like the
     # lines, which the GGX fit uses too
-    learned_photos: np.ndarray   # (N, 2, 64, 3) views [primary, secondary]
-    learned_weights: np.ndarray  # (64, L_upper, 3)
+    learned_photos: np.ndarray   # (N, 2, 2K, 3) views [primary, secondary]
+    learned_weights: np.ndarray  # (2K, L_upper, 3)
 
     @property
     def learned(self) -> np.ndarray:
@@ -159,8 +159,9 @@ def detect_sample_size(session: CaptureSession, rig) -> float:
     """Side (mm) of the largest square centred on the plane origin inside the region where the sample blocks
     the bottom light (photo 128 against 130, primary camera), before the reference's 6.5% shrink."""
     cam = rig.camera(next(iter(rig.cameras)))
-    lit = session.photo(EMPTY_BOTTOM, 0).mean(axis=2)
-    sample = session.photo(BOTTOM, 0).mean(axis=2)
+    ix = indices_of(session)
+    lit = session.photo(ix.empty_bottom, 0).mean(axis=2)
+    sample = session.photo(ix.bottom, 0).mean(axis=2)
     ok = lit > LIT_FRACTION * lit.max()
     under = ok & (sample < SAMPLE_RATIO * lit)
     if under.sum() < MIN_SAMPLE_PIXELS:
@@ -239,11 +240,13 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_
     from tqdm import tqdm
 
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
-    weights = capture_patterns(session, rig, [f"line_{j:02d}" for j in range(len(LINES))])[:, upper, :]
+    try:
+        ix = indices_of(session)
+    except ValueError as e:
+        raise ExtractionError(str(e)) from None
+    weights = capture_patterns(session, rig, [f"line_{j:02d}" for j in range(len(ix.lines))])[:, upper, :]
     shown = session.shown_patterns(0)
-    if any(k not in shown for k in LEARNED):
-        raise ExtractionError(f"{session.dir}: the capture's plan does not name the pattern of photos 0-63")
-    learned_weights = capture_patterns(session, rig, [shown[k] for k in LEARNED])[:, upper, :]
+    learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]
 
     views = ((uv0, k0), (uv1, k1))
 
@@ -253,20 +256,20 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_
 
     # the photos are read, checked, corrected and sampled by a pool of threads (EXR decoding, sha256 and numpy
     # release the GIL): a paper-rig capture is 196 photos of 74 MB, ~0.5 s each on one core
-    jobs = [(k, c) for c in (0, 1) for k in LEARNED] + [(k, 0) for k in LINES] + [(BOTTOM, 0), (EMPTY_BOTTOM, 0)]
+    jobs = [(k, c) for c in (0, 1) for k in ix.learned] + [(k, 0) for k in ix.lines] + [(ix.bottom, 0), (ix.empty_bottom, 0)]
     with ThreadPoolExecutor(max_workers=min(READERS, os.cpu_count() or 1)) as pool:
         values = dict(zip(jobs, tqdm(pool.map(sampled, jobs), total=len(jobs), desc="extract",
                                      disable=not progress)))
     n = len(pos)
-    learned_photos = np.empty((n, 2, len(LEARNED), 3), np.float32)
+    learned_photos = np.empty((n, 2, len(ix.learned), 3), np.float32)
     for c in (0, 1):
-        for k in LEARNED:
+        for k in ix.learned:
             learned_photos[:, c, k] = values[k, c] * scale
-    lines = np.empty((n, len(LINES), 3), np.float32)
-    for j, k in enumerate(LINES):
+    lines = np.empty((n, len(ix.lines), 3), np.float32)
+    for j, k in enumerate(ix.lines):
         lines[:, j] = values[k, 0] * scale
-    bottom = values[BOTTOM, 0].mean(axis=1)
-    empty = values[EMPTY_BOTTOM, 0].mean(axis=1)
+    bottom = values[ix.bottom, 0].mean(axis=1)
+    empty = values[ix.empty_bottom, 0].mean(axis=1)
     transparency = np.clip(bottom / (empty + 1e-6), 0.0, 1.0).astype(np.float32)  # reference §6.3
     valid = (np.isfinite(learned_photos).all(axis=(1, 2, 3)) & np.isfinite(lines).all(axis=(1, 2))
              & np.isfinite(transparency))

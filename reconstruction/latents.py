@@ -10,23 +10,30 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from twin.capture.plan import LEARNED
-
 from .extraction import ExtractionError, capture_patterns
 
 DECODE_BATCH = 65536  # texels per encoder batch: bounds memory for 1024^2 texels, large enough to fill a GPU
 
 
 def check_patterns(model, session, rig) -> None:
-    """The capture's 64 learned frames must be the network's own exported patterns, level for level: the
+    """The capture's learned frames (2K) must be the network's own exported patterns, level for level: the
     encoder only understands the measurements of the patterns it was trained with."""
     from .train import export_patterns
 
+    from twin.capture.plan import indices_of
+
     mine = export_patterns(model, rig)
-    theirs = capture_patterns(session, rig, list(mine.names))
-    if not np.array_equal(np.rint(theirs * 255).astype(np.uint8), mine.levels):
-        raise ExtractionError(f"{session.dir}: its learned frames ({len(LEARNED)}) are not this network's patterns; "
-                              "decode it with the network whose patterns were captured")
+    try:
+        frames = indices_of(session).learned_frames
+    except ValueError as e:
+        raise ExtractionError(str(e)) from None
+    same = frames == len(mine.names)
+    if same:
+        theirs = capture_patterns(session, rig, list(mine.names))
+        same = np.array_equal(np.rint(theirs * 255).astype(np.uint8), mine.levels)
+    if not same:
+        raise ExtractionError(f"{session.dir}: its learned frames ({frames}) are not this network's patterns "
+                              f"({len(mine.names)} frames); decode it with the network whose patterns were captured")
 
 
 def decode(model, learned: np.ndarray, *, device="cpu", batch: int = DECODE_BATCH) -> np.ndarray:

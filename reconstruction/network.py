@@ -105,6 +105,10 @@ class NetworkConfig:
     quantise           8-bit quantisation of the patterns in the loop (straight-through).
     architecture       "paper" (the released decoder and encoder, scaled to L) or "compact" (see the module
                        docstring: a factorised output layer and half-width encoder, small enough to ship).
+    leds_off           lumitexel indices (upper LEDs) the patterns never drive: a layout with LEDs or boards
+                       removed (twin.design); their weights are 0 in training and in the exported levels.
+    fixed_patterns     the patterns are given (a fixed family: Hadamard, gradients, one LED at a time) and not
+                       trained; only the encoder and decoder learn (PatternLayer.set_weights).
     shared_patterns    True (default): one pattern set photographed by every camera, the physical capture
                        (reference §3.2: the same 64 photos, 32 (+, -) pairs, are seen by camera 0 and
                        camera 1; the capture plan shows 64 learned frames once). False: an independent set
@@ -123,8 +127,15 @@ class NetworkConfig:
     quantise: bool = True
     shared_patterns: bool = True
     architecture: str = "paper"
+    leds_off: tuple[int, ...] = ()
+    fixed_patterns: bool = False
 
     def __post_init__(self):
+        object.__setattr__(self, "leds_off", tuple(self.leds_off))
+        if not all(_is_int(i) and 0 <= i < self.num_leds for i in self.leds_off) or \
+                len(set(self.leds_off)) != len(self.leds_off) or len(self.leds_off) >= self.num_leds:
+            raise ValueError(f"NetworkConfig.leds_off must be distinct lumitexel indices in [0, {self.num_leds}) "
+                             "leaving at least one LED on")
         for name in ("num_leds", "patterns_per_view", "views", "albedo_dim", "shape_dim"):
             v = getattr(self, name)
             if not _is_int(v) or v < 1:
@@ -136,7 +147,7 @@ class NetworkConfig:
                              f"got {self.measurement_noise!r}")
         if not _is_real(self.negative_slope) or not (0.0 <= float(self.negative_slope) < 1.0):
             raise ValueError(f"NetworkConfig.negative_slope must lie in [0, 1), got {self.negative_slope!r}")
-        for name in ("quantise", "shared_patterns"):
+        for name in ("quantise", "shared_patterns", "fixed_patterns"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"NetworkConfig.{name} must be a bool, got {getattr(self, name)!r}")
         if self.architecture not in ARCHITECTURES:
@@ -249,7 +260,22 @@ class PatternLayer(nn.Module):
         super().__init__()
         self.config = config
         sets = 1 if config.shared_patterns else config.views
-        self.theta = nn.Parameter(torch.randn(sets, config.patterns_per_view, config.num_leds) * 0.5)
+        self.theta = nn.Parameter(torch.randn(sets, config.patterns_per_view, config.num_leds) * 0.5,
+                                  requires_grad=not config.fixed_patterns)
+        mask = torch.ones(config.num_leds)
+        mask[list(config.leds_off)] = 0.0
+        self.register_buffer("mask", mask, persistent=False)  # from the config: not a learned state
+
+    def set_weights(self, w) -> None:
+        """Set the patterns to given signed weights w (K, L) in [-1, 1] (every view): theta = atanh(w), with
+        |w| = 1 held just inside so that the 8-bit level is still 255."""
+        w = torch.as_tensor(w, dtype=self.theta.dtype, device=self.theta.device)
+        c = self.config
+        if w.shape != (c.patterns_per_view, c.num_leds) or not torch.isfinite(w).all() or w.abs().max() > 1:
+            raise ValueError(f"pattern weights must be finite, in [-1, 1], of shape ({c.patterns_per_view}, "
+                             f"{c.num_leds}); got {tuple(w.shape)}")
+        with torch.no_grad():
+            self.theta.copy_(torch.atanh(w.clamp(-1 + 0.1 / LEVELS, 1 - 0.1 / LEVELS)).expand_as(self.theta))
 
     @property
     def num_frames(self) -> int:
@@ -257,7 +283,7 @@ class PatternLayer(nn.Module):
 
     def weights(self) -> torch.Tensor:
         """w = tanh(theta), (views, K, L), unquantised, differentiable."""
-        w = torch.tanh(self.theta)
+        w = torch.tanh(self.theta) * self.mask
         return w.expand(self.config.views, -1, -1)
 
     def quantised_weights(self) -> torch.Tensor:

@@ -98,7 +98,7 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
 
 def _reconstruct_into(out: ReconstructionFolder, session, rig, config: ReconstructConfig,
                       progress: bool) -> Reconstruction:
-    from twin.capture.plan import UNIFORM
+    from twin.capture.plan import indices_of
 
     from .alignment import align_views
     from .extraction import extract, texture_grid
@@ -114,7 +114,8 @@ def _reconstruct_into(out: ReconstructionFolder, session, rig, config: Reconstru
         return time.perf_counter()
 
     t = stage("alignment")
-    alignment = align_views(session.photo(UNIFORM, 0), session.photo(UNIFORM, 1), rig,
+    uniform = indices_of(session).uniform
+    alignment = align_views(session.photo(uniform, 0), session.photo(uniform, 1), rig,
                             replace(config.align, device=config.device))
     timings["alignment_s"] = time.perf_counter() - t
     out.write_alignment(alignment)

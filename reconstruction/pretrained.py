@@ -32,7 +32,7 @@ from twin.atomic import write_bytes_atomic
 
 from .data import heldout_set
 from .network import AcquisitionNet, log_to_lumitexel, lumitexel_loss
-from .train import TrainConfig, _evaluate, export_patterns, heldout_losses, load_run_model
+from .train import TrainConfig, _evaluate, blind_loss, export_patterns, heldout_losses, load_run_model
 
 PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
 SHIP_LIMIT = 16 * 2 ** 20
@@ -123,8 +123,7 @@ def score_network(model: AcquisitionNet, rig, config: TrainConfig, device="cpu")
                    and the fit lean on), with the whole lumitexels' Eq. 3 for scale."""
     held = heldout_set(rig, config.sampling, config.heldout_size, config.seed, device)
     per = heldout_losses(model, held)
-    logs = torch.log1p(held["target"].double())
-    blind = float(((logs - logs.mean(dim=0)) ** 2).sum(dim=1).mean())
+    blind = blind_loss(held["target"])
     lo = config.sampling.alpha_range[0]
     narrow = heldout_set(rig, dataclasses.replace(config.sampling, alpha_range=(lo, max(lo, NARROW_ALPHA))),
                          config.heldout_size, config.seed, device)

@@ -60,7 +60,7 @@ from .distributed import Dist, any_rank, all_sum, barrier, gather_objects, globa
 from .network import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
 
 __all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_patterns", "load_checkpoint",
-           "CHECKPOINT_TENSORS", "CHECKPOINT_JSON"]
+           "CHECKPOINT_TENSORS", "CHECKPOINT_JSON", "heldout_losses", "blind_loss"]
 
 CHECKPOINT_TENSORS = "checkpoint.safetensors"
 CHECKPOINT_JSON = "checkpoint.json"
@@ -101,6 +101,10 @@ class TrainConfig:
     architecture: str = "paper"   # "paper" (released) or "compact" (shippable; reconstruction.network)
     # training data distributions (reconstruction.data.SamplingConfig defaults, sources given there)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    # a design's layout and pattern family (twin.design): lumitexel indices the patterns leave off, and a
+    # pattern file of fixed (+, -) frames over all rig LEDs that the network uses as they are ("" = learn them)
+    leds_off: tuple[int, ...] = ()
+    patterns_file: str = ""
 
     def __post_init__(self):
         for name in ("steps", "batch", "eval_every", "checkpoint_every", "heldout_size", "patterns_per_view"):
@@ -118,7 +122,8 @@ class TrainConfig:
     def network_config(self, num_leds: int) -> NetworkConfig:
         return NetworkConfig(num_leds=int(num_leds), patterns_per_view=self.patterns_per_view,
                              dropout=self.dropout, measurement_noise=self.measurement_noise,
-                             architecture=self.architecture)
+                             architecture=self.architecture, leds_off=self.leds_off,
+                             fixed_patterns=bool(self.patterns_file))
 
     def to_json(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self)))
@@ -130,7 +135,24 @@ class TrainConfig:
         for k, v in s.items():
             if isinstance(v, list):
                 s[k] = tuple(v)
+        d["leds_off"] = tuple(d.get("leds_off", ()))
         return cls(**d, sampling=SamplingConfig(**s))
+
+
+def _fixed_weights(path, rig, count: int) -> np.ndarray:
+    """(K, L_upper) signed grey weights of a pattern file of K (+, -) frame pairs over all rig LEDs."""
+    from twin.capture.patterns import PatternError, load_patterns
+
+    try:
+        p = load_patterns(path)
+        p.check_rig(rig)
+    except (PatternError, OSError) as e:
+        raise TrainError(f"TrainConfig.patterns_file: {e}") from None
+    if p.num_patterns != 2 * count:
+        raise TrainError(f"TrainConfig.patterns_file: {path} has {p.num_patterns} frames, {count} patterns need "
+                         f"{2 * count}")
+    w = p.weights.mean(axis=2)[:, ~np.asarray(rig.is_bottom)]
+    return w[0::2] - w[1::2]
 
 
 def is_pair_step(i: int, fraction: float) -> bool:
@@ -321,6 +343,14 @@ def heldout_losses(model, held) -> torch.Tensor:
         return lumitexel_loss(model(held["views"])["log_lumitexel"], held["target"], reduction="none")
 
 
+def blind_loss(target: torch.Tensor) -> float:
+    """Eq. 3 of the best measurement-blind predictor of the lumitexels `target` (n, L): the per-LED mean of
+    log(1 + m) over them, i.e. their summed per-LED variance of log(1 + m). A network that ignores its
+    measurements (a collapsed decoder) scores this; a useful one scores well below it."""
+    logs = torch.log1p(target.double())
+    return float(((logs - logs.mean(dim=0)) ** 2).sum(dim=1).mean())
+
+
 def _evaluate(model, held) -> float:
     loss = float(heldout_losses(model, held).mean())
     model.train()
@@ -363,11 +393,14 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
         held = heldout_set(rig, config.sampling, config.heldout_size, config.seed, device) if ctx.is_main else None
         torch.manual_seed(config.seed)
         model = AcquisitionNet(net_cfg).to(device)
+        if config.patterns_file:
+            model.patterns.set_weights(_fixed_weights(config.patterns_file, rig, config.patterns_per_view))
         model.train()
         if ctx.active:
             globalise_batchnorm(model)
             torch.manual_seed(stream_seed(config.seed, f"rank-{ctx.rank}", 0))  # own dropout and noise draws
-        opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(config.beta1, config.beta2))
+        opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr,
+                               betas=(config.beta1, config.beta2))
 
         mpath = run_dir / "metrics.jsonl"
         start, wall_before = 0, 0.0

@@ -12,7 +12,7 @@ import pytest
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 TIMEOUT_S = 300  # per cell; the tour takes about 15 s on 2 CPU cores
-MIN_IMAGES = {"tour_of_the_rig.ipynb": 3}  # notebooks whose point is their pictures
+MIN_IMAGES = {"tour_of_the_rig.ipynb": 3, "designer.ipynb": 5}  # notebooks whose point is their pictures
 
 
 @pytest.fixture(autouse=True)

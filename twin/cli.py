@@ -242,8 +242,8 @@ def register(sub) -> None:
     s.add_argument("--resolution", type=int, default=128, help="texels per side of a built-in sample's maps "
                    "(default: %(default)s)")
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
-    s.add_argument("--patterns", help="pattern file with the 64 learned frames (default: the rig's own, else a "
-                   "seeded placeholder)")
+    s.add_argument("--patterns", help="pattern file with the learned frames, K (+, -) pairs (a `hemicube train` "
+                   "run's patterns.npz; default: the rig's own 64, else a seeded placeholder)")
     s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     s.set_defaults(func=cmd_capture)

@@ -16,6 +16,26 @@ uniform
     Every upper LED at full drive: the alignment photos (reference §6.1 uses uniform-light photos).
 bottom
     Every bottom LED at full drive: the transparency photo (reference §6.3, image 128).
+
+Fixed signed families, baselines for a pattern designer (issue #17), each captured as (+, -) pairs through
+`signed_pairs` over the upper LEDs (bottom LEDs 0, the three channels equal), frames "<family>_{k:02d}+/-":
+hadamard
+    Rows 1..count of the Sylvester Hadamard matrix of order n = the next power of two >= the number of
+    upper LEDs, truncated to the upper LEDs in rig order: the +/-1 Hadamard code (Harwit & Sloane,
+    "Hadamard Transform Optics", 1979), each row's +1 LEDs in the + frame and its -1 LEDs in the - frame.
+    Row 0 (all ones) is skipped: it is the uniform light. Entry (i, j) is (-1)^popcount(i AND j), so the
+    rows are made without the whole n x n matrix (16,384^2 for the paper rig).
+gradients
+    The four spherical-gradient patterns of Ma et al. 2007 ("Rapid acquisition of specular and diffuse
+    normal maps from polarized spherical gradient illumination", EGSR): per upper LED the components
+    d_x, d_y, d_z of its unit direction from the sample origin (rig world frame) and a constant 1 (whose
+    - frame is dark).
+lines
+    `count` linear lights by `linear_light_lines`' rule (one board row or column each, the plan's own kind
+    of light), each a + frame whose - frame is dark.
+olat
+    One LED at a time: `count` upper LEDs evenly spread over the upper LEDs in rig order (`_spread`), or
+    over those of a given mask.
 """
 from __future__ import annotations
 
@@ -81,6 +101,70 @@ def linear_lights(rig, count: int = NUM_LINEAR_LIGHTS) -> PatternSet:
 
 def uniform(rig) -> PatternSet:
     return PatternSet.from_weights((~rig.is_bottom)[None].astype(float), ["uniform"], rig.name)
+
+
+def _check_count(count, most: int) -> int:
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 1 <= count <= most:
+        raise ValueError(f"count must be an integer in [1, {most}], got {count!r}")
+    return int(count)
+
+
+def _upper_signed(rig, values: np.ndarray, family: str, note: str) -> PatternSet:
+    """(K, L_upper) signed values on the upper LEDs -> the (+, -) PatternSet, bottom LEDs 0, channels equal."""
+    w = np.zeros((len(values), rig.num_leds, 3))
+    w[:, ~rig.is_bottom] = values[..., None]
+    return signed_pairs(w, [f"{family}_{k:02d}" for k in range(len(values))], rig.name, note)
+
+
+def hadamard(rig, count: int) -> PatternSet:
+    """Rows 1..count of the Sylvester Hadamard matrix (module docstring): the +/-1 Hadamard code captured as
+    (+, -) pairs, levels 255 in the frame of each LED's sign."""
+    n_up = int((~rig.is_bottom).sum())
+    order = 1 << max(n_up - 1, 0).bit_length()  # next power of two >= n_up
+    count = _check_count(count, order - 1)
+    bits = np.arange(1, count + 1)[:, None] & np.arange(n_up)[None, :]
+    parity = np.zeros(bits.shape, dtype=np.int64)
+    while bits.any():  # parity of popcount(i AND j), one bit at a time
+        parity ^= bits & 1
+        bits >>= 1
+    rows = 1.0 - 2.0 * parity
+    return _upper_signed(rig, rows, "hadamard",
+                         f"hadamard: rows 1..{count} of the Sylvester Hadamard matrix of order {order}, truncated "
+                         f"to the {n_up} upper LEDs, as (+, -) pairs")
+
+
+def gradients(rig) -> PatternSet:
+    """The 4 spherical-gradient patterns of Ma et al. 2007 (module docstring): x, y, z, constant."""
+    d = rig.leds.positions[~rig.is_bottom] - np.asarray(rig.sample.origin)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    values = np.concatenate([d.T, np.ones((1, len(d)))])
+    return _upper_signed(rig, values, "gradients",
+                         "spherical gradients (Ma et al. 2007): LED direction x, y, z from the sample origin, "
+                         "then constant")
+
+
+def lines(rig, count: int) -> PatternSet:
+    """`count` linear lights (module docstring) as (+, -) pairs with dark - frames."""
+    count = _check_count(count, NUM_LINEAR_LIGHTS)
+    values = linear_lights(rig, count).weights[..., 0][:, ~rig.is_bottom]
+    return _upper_signed(rig, values, "lines", f"linear lights: {count} board rows or columns, - frames dark")
+
+
+def olat(rig, count: int, on=None) -> PatternSet:
+    """`count` one-LED-at-a-time patterns, the LEDs evenly spread over the upper LEDs in rig order (module
+    docstring); `on` ((L,) bool over all rig LEDs) restricts the choice to the upper LEDs it marks."""
+    up = ~rig.is_bottom
+    if on is not None:
+        on = np.asarray(on)
+        if on.dtype != bool or on.shape != (rig.num_leds,):
+            raise ValueError(f"on must be a ({rig.num_leds},) bool mask over the rig's LEDs, got {on.dtype} "
+                             f"{on.shape}")
+    pool = np.flatnonzero(up if on is None else up & on)  # candidate LEDs
+    count = _check_count(count, len(pool))
+    values = np.zeros((count, rig.num_leds))
+    values[np.arange(count), pool[_spread(len(pool), count)]] = 1.0
+    return _upper_signed(rig, values[:, up], "olat",
+                         f"one LED at a time: {count} of {len(pool)} upper LEDs, evenly spread")
 
 
 def bottom_only(rig) -> PatternSet:

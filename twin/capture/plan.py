@@ -6,6 +6,11 @@
     k 129      uniform light (two-view alignment)           cameras 0 and 1
     k 130      all bottom LEDs, empty board (reference for transparency: transparency = k128 / k130)
 
+With another number of learned patterns K (a capture design, issue #17: F = 2K learned frames), the same
+order shifts: learned 0..F-1, lines F..F+63, then bottom, uniform, empty bottom (`PlanIndices`); a capture
+records which pattern each photo showed, so `indices_of(session)` reads its layout back. K = 32 is the
+reference's layout (`REFERENCE_INDICES`).
+
 Each photo is an exposure bracket of BRACKET raw frames, BRACKET_RATIO apart, merged to linear HDR
 (twin.camera.hdr). The learned frames default to the patterns a rig carries as data (DEFAULT_PATTERNS: the
 shipped network's for the built-in mini rig, written there by reconstruction.pretrained), else a seeded
@@ -18,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twin.capture import pattern_sets
+from twin.capture.pattern_sets import NUM_LINEAR_LIGHTS
 from twin.capture.patterns import load_patterns
 from twin.rig.builtin import serves_for
 
@@ -29,9 +35,54 @@ EXPOSURE_LIMITS_S = (20e-6, 1.0)  # the camera's exposure range used by the plan
 # (n / 1e6 is the double nearest to n microseconds, the same number whichever code converts it)
 EXPOSURE_STEPS_PER_S = 1_000_000
 
-LEARNED = range(0, 64)       # photo indices of the plan (reference §6.3)
-LINES = range(64, 128)
-BOTTOM, UNIFORM, EMPTY_BOTTOM = 128, 129, 130
+
+@dataclass(frozen=True)
+class PlanIndices:
+    """Photo indices of a plan with `learned_frames` (2K) learned frames (module docstring)."""
+
+    learned_frames: int = 64
+
+    def __post_init__(self):
+        f = self.learned_frames
+        if isinstance(f, bool) or not isinstance(f, int) or f < 2 or f % 2:
+            raise CaptureError(f"the plan takes learned patterns as (+, -) pairs: an even number >= 2 of learned "
+                               f"frames, got {f!r}")
+
+    @property
+    def learned(self) -> range:
+        return range(0, self.learned_frames)
+
+    @property
+    def lines(self) -> range:
+        return range(self.learned_frames, self.learned_frames + NUM_LINEAR_LIGHTS)
+
+    @property
+    def bottom(self) -> int:
+        return self.learned_frames + NUM_LINEAR_LIGHTS
+
+    @property
+    def uniform(self) -> int:
+        return self.bottom + 1
+
+    @property
+    def empty_bottom(self) -> int:
+        return self.bottom + 2
+
+
+def indices_of(session) -> PlanIndices:
+    """The plan layout of a capture, from the patterns its camera-0 photos showed (the first line photo
+    follows the learned frames)."""
+    shown = session.shown_patterns(0)
+    lines = [k for k, name in shown.items() if name.startswith("line_")]
+    if not lines:
+        raise CaptureError(f"{session.dir}: its plan has no line photos")
+    ix = PlanIndices(min(lines))
+    if any(k not in shown for k in ix.learned):
+        raise CaptureError(f"{session.dir}: its plan lacks learned photos below index {ix.learned_frames}")
+    return ix
+
+
+REFERENCE_INDICES = PlanIndices(64)  # the reference's plan (reference §6.3): 32 signed pairs
 
 # per rig name: the learned patterns it carries, and the digest of the rig they were made for
 DEFAULT_PATTERNS = Path(__file__).resolve().parent / "default_patterns"
@@ -69,9 +120,7 @@ def build_patterns(rig, learned=None):
     placeholder."""
     if learned is None:
         learned = default_learned(rig) or pattern_sets.placeholder_learned(rig)
-    if learned.num_patterns != len(LEARNED):
-        raise CaptureError(f"the plan needs {len(LEARNED)} learned frames ({len(LEARNED) // 2} signed pairs), "
-                           f"got {learned.num_patterns}")
+    PlanIndices(learned.num_patterns)  # any K, as (+, -) pairs: an even count
     sets = [learned, pattern_sets.linear_lights(rig), pattern_sets.uniform(rig)]
     if rig.is_bottom.any():
         sets.append(pattern_sets.bottom_only(rig))
@@ -81,15 +130,16 @@ def build_patterns(rig, learned=None):
 def paper_plan(rig, patterns) -> list[Photo]:
     cams = list(rig.cameras)
     names = patterns.names
+    ix = PlanIndices(names.index("line_00"))  # the learned frames come first (build_patterns)
     plan = []
-    for k in LEARNED:
+    for k in ix.learned:
         plan += [Photo(k, cams[c], c, names[k], "sample") for c in range(len(cams))]
-    plan += [Photo(k, cams[0], 0, f"line_{j:02d}", "sample") for j, k in enumerate(LINES)]
+    plan += [Photo(k, cams[0], 0, f"line_{j:02d}", "sample") for j, k in enumerate(ix.lines)]
     if "bottom" in names:
-        plan.append(Photo(BOTTOM, cams[0], 0, "bottom", "sample"))
-    plan += [Photo(UNIFORM, cams[c], c, "uniform", "sample") for c in range(len(cams))]
+        plan.append(Photo(ix.bottom, cams[0], 0, "bottom", "sample"))
+    plan += [Photo(ix.uniform, cams[c], c, "uniform", "sample") for c in range(len(cams))]
     if "bottom" in names:
-        plan.append(Photo(EMPTY_BOTTOM, cams[0], 0, "bottom", "empty"))
+        plan.append(Photo(ix.empty_bottom, cams[0], 0, "bottom", "empty"))
     return plan
 
 
