@@ -179,8 +179,8 @@ def _map_errors(design, run: Path, patterns, samples, out: Path, device: str, pr
         per[name] = {k: float(np.mean([flat[m] for m in ms])) for k, ms in MAP_METRICS.items()}
         per[name]["goals_missed"] = [r["metric"] for r in rows if not r["passed"]]
         if progress:
-            print(f"design {design.name}: {name}: " + ", ".join(f"{k} {v:.3g}" for k, v in per[name].items()),
-                  file=sys.stderr)
+            print(f"design {design.name}: {name}: " + ", ".join(f"{k} {per[name][k]:.3g}" for k in MAP_METRICS)
+                  + f"; goals missed: {per[name]['goals_missed'] or 'none'}", file=sys.stderr)
     return ({k: float(np.mean([p[k] for p in per.values()])) for k in MAP_METRICS}
             | {"maps_goals_missed": sum(len(p["goals_missed"]) for p in per.values()), "maps_per_sample": per})
 
