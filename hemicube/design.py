@@ -192,6 +192,7 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
 
     from reconstruction.data import LUMITEXEL_SCALE, SamplingConfig, heldout_set
     from reconstruction.train import export_patterns
+    from twin.capture.pattern_sets import signed_weights
     from twin.capture.plan import bracket_exposures
     from twin.design.costs import led_duty, photo_seconds, upload_cost
     from twin.design.noise import measurement_noise, olat_functional_gain
@@ -202,8 +203,7 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
     losses, blind, model = _train_runs(design, out, device, progress)
     patterns = export_patterns(model, rig, note=f"design {design.name}")  # 2K frames (+, -), all rig LEDs
     save_pattern_image(patterns, rig, out / "patterns.png")
-    grey = patterns.weights.mean(axis=2)
-    signed = (grey[0::2] - grey[1::2]).astype(np.float64)  # (K, L)
+    signed = signed_weights(patterns)  # (K, L)
 
     # reference texels: the first of the test texels (the materials the design is for), physical radiance per LED
     tr = design.training

@@ -141,6 +141,7 @@ class TrainConfig:
 
 def _fixed_weights(path, rig, count: int) -> np.ndarray:
     """(K, L_upper) signed grey weights of a pattern file of K (+, -) frame pairs over all rig LEDs."""
+    from twin.capture.pattern_sets import signed_weights
     from twin.capture.patterns import PatternError, load_patterns
 
     try:
@@ -151,8 +152,7 @@ def _fixed_weights(path, rig, count: int) -> np.ndarray:
     if p.num_patterns != 2 * count:
         raise TrainError(f"TrainConfig.patterns_file: {path} has {p.num_patterns} frames, {count} patterns need "
                          f"{2 * count}")
-    w = p.weights.mean(axis=2)[:, ~np.asarray(rig.is_bottom)]
-    return w[0::2] - w[1::2]
+    return signed_weights(p)[:, ~np.asarray(rig.is_bottom)]
 
 
 def is_pair_step(i: int, fraction: float) -> bool:

@@ -71,6 +71,15 @@ def test_hadamard_rows_on_the_paper_rig():
     assert (signed == want).all()
 
 
+def test_signed_weights_invert_signed_pairs(rig):
+    w = np.random.default_rng(3).uniform(-1, 1, (5, rig.num_leds, 3))
+    got = pattern_sets.signed_weights(pattern_sets.signed_pairs(w, [f"p{k}" for k in range(5)], rig.name))
+    assert got.shape == (5, rig.num_leds) and got.dtype == np.float64
+    assert np.abs(got - w.mean(axis=2)).max() <= 0.5 / 255 + 1e-12  # each frame rounded to 8-bit levels
+    with pytest.raises(ValueError, match="pairs"):
+        pattern_sets.signed_weights(pattern_sets.uniform(rig))
+
+
 def test_lines_are_the_plans_linear_lights(rig):
     ps = pattern_sets.lines(rig, 10)
     _check_pairs(ps, "lines", 10, rig)

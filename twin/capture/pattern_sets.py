@@ -60,6 +60,15 @@ def signed_pairs(weights: np.ndarray, names, rig_name: str, note: str = "") -> P
     return PatternSet.from_weights(frames, pair_names, rig_name, note)
 
 
+def signed_weights(patterns: PatternSet) -> np.ndarray:
+    """The inverse of `signed_pairs` in grey: (K, L) float64 weights (+ frame minus - frame, the mean over the
+    channels) of a set of 2K frames in (+, -) order."""
+    if patterns.num_patterns % 2:
+        raise ValueError(f"signed patterns come as (+, -) pairs: an even number of frames, got {patterns.num_patterns}")
+    grey = patterns.weights.astype(np.float64).mean(axis=2)
+    return grey[0::2] - grey[1::2]
+
+
 def placeholder_learned(rig, count: int = 32, seed: int = 0) -> PatternSet:
     rng = np.random.default_rng(seed)
     w = rng.uniform(-1, 1, (count, rig.num_leds, 3))

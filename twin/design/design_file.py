@@ -114,17 +114,12 @@ class Design:
 
         if self.family == "learned":
             return None
-        if self.family == "file":
-            p = load_patterns(self.pattern_file).weights.mean(axis=2)
-            w = p[0::2] - p[1::2]
-        else:
-            make = {"hadamard": lambda: pattern_sets.hadamard(self.rig, self.count),
-                    "gradients": lambda: pattern_sets.gradients(self.rig),
-                    "lines": lambda: pattern_sets.lines(self.rig, self.count),
-                    "olat": lambda: pattern_sets.olat(self.rig, self.count, on=self.led_on)}[self.family]
-            p = make().weights.mean(axis=2)
-            w = p[0::2] - p[1::2]
-        return np.where(self.led_on[None], w, 0.0)
+        make = {"file": lambda: load_patterns(self.pattern_file),
+                "hadamard": lambda: pattern_sets.hadamard(self.rig, self.count),
+                "gradients": lambda: pattern_sets.gradients(self.rig),
+                "lines": lambda: pattern_sets.lines(self.rig, self.count),
+                "olat": lambda: pattern_sets.olat(self.rig, self.count, on=self.led_on)}[self.family]
+        return np.where(self.led_on[None], pattern_sets.signed_weights(make()), 0.0)
 
 
 def _err(src, key, msg) -> DesignError:
