@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twin.capture.plan import indices_of
+from twin.capture.plan import PlanIndices, indices_of
 from twin.capture.session import CaptureSession
 
 # reference §6.1: the texture grid is the sample's bounding box shrunk by 6.5% of its extent on every side
@@ -104,9 +104,9 @@ class Measurements:
     valid: np.ndarray          # (N,) bool: seen by both views, every value finite
     pixel_primary: np.ndarray  # (N, 2) the texel centre's primary pixel (x, y)
     pixel_secondary: np.ndarray  # (N, 2) its aligned secondary pixel (x, y), NaN where unknown
-    # the 2K learned-pattern photos (+ and - frames, photos 0 to 2K-1; 64 in the reference's plan) of both views (the secondary through the
-    # alignment), RGB, and their patterns' relative drive on the upper LEDs: non-negative measurements like the
-    # lines, which the GGX fit uses too
+    # the 2K learned-pattern photos (+ and - frames, photos 0 to 2K-1; 64 in the reference's plan) of both views
+    # (the secondary through the alignment), RGB, and their patterns' relative drive on the upper LEDs:
+    # non-negative measurements like the lines, which the GGX fit uses too
     learned_photos: np.ndarray   # (N, 2, 2K, 3) views [primary, secondary]
     learned_weights: np.ndarray  # (2K, L_upper, 3)
 
@@ -115,6 +115,14 @@ class Measurements:
         """(N, 2, K) the network's input: the grey (mean RGB) (+, -) differences of the learned photos, views
         [primary, secondary]."""
         return (self.learned_photos[:, :, 0::2] - self.learned_photos[:, :, 1::2]).mean(axis=3)
+
+
+def plan_indices(session: CaptureSession) -> PlanIndices:
+    """The capture's plan layout (twin.capture.plan.indices_of), its faults as ExtractionError."""
+    try:
+        return indices_of(session)
+    except ValueError as e:
+        raise ExtractionError(str(e)) from None
 
 
 def capture_patterns(session: CaptureSession, rig, names) -> np.ndarray:
@@ -159,7 +167,7 @@ def detect_sample_size(session: CaptureSession, rig) -> float:
     """Side (mm) of the largest square centred on the plane origin inside the region where the sample blocks
     the bottom light (photo 128 against 130, primary camera), before the reference's 6.5% shrink."""
     cam = rig.camera(next(iter(rig.cameras)))
-    ix = indices_of(session)
+    ix = plan_indices(session)
     lit = session.photo(ix.empty_bottom, 0).mean(axis=2)
     sample = session.photo(ix.bottom, 0).mean(axis=2)
     ok = lit > LIT_FRACTION * lit.max()
@@ -240,10 +248,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_
     from tqdm import tqdm
 
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
-    try:
-        ix = indices_of(session)
-    except ValueError as e:
-        raise ExtractionError(str(e)) from None
+    ix = plan_indices(session)
     weights = capture_patterns(session, rig, [f"line_{j:02d}" for j in range(len(ix.lines))])[:, upper, :]
     shown = session.shown_patterns(0)
     learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .extraction import ExtractionError, capture_patterns
+from .extraction import ExtractionError, capture_patterns, plan_indices
 
 DECODE_BATCH = 65536  # texels per encoder batch: bounds memory for 1024^2 texels, large enough to fill a GPU
 
@@ -20,13 +20,8 @@ def check_patterns(model, session, rig) -> None:
     encoder only understands the measurements of the patterns it was trained with."""
     from .train import export_patterns
 
-    from twin.capture.plan import indices_of
-
     mine = export_patterns(model, rig)
-    try:
-        frames = indices_of(session).learned_frames
-    except ValueError as e:
-        raise ExtractionError(str(e)) from None
+    frames = plan_indices(session).learned_frames
     same = frames == len(mine.names)
     if same:
         theirs = capture_patterns(session, rig, list(mine.names))
