@@ -52,15 +52,13 @@ Iterations (`FinetuneConfig.source`):
 * "paper" (paper §7.1): exactly 100 / 50 / 200 iterations, no early stopping.
 
 Batching (issue #6: "all texels are optimised together in large batches on the GPU, not 100 at a time").
-`batch=None` optimises all N texels as one batch. Each texel's gradient depends only on its own latent
-(the decoder is evaluated in eval mode: no dropout, no BatchNorm) and Adam is element-wise, so without
-early stopping a texel's result does not depend on its batch (up to float rounding in batched matrix
-products). WITH early stopping it does: the objective is the batch SUM (as in the reference, whose batches
-of 100 stop together), so with one huge batch the stopping ratio is a global one, the whole sample stops
-when the sample as a whole stops improving. That is the intent here; pass `batch` for smaller groups.
-Memory: backpropagation keeps the decoder's activations, about 3 x (sum of the decoder widths) x 2 floats
-per texel in pass 3; on the paper rig (widths summing to ~35 k) that is ~1 MB per texel, so a 1024^2
-sample needs batches of some 50 k texels on an 80 GB GPU (an estimate, not a measurement).
+Batches of `batch` texels (16,384 by default; None: all N texels as one batch). Each texel's gradient depends
+only on its own latent (the decoder is evaluated in eval mode: no dropout, no BatchNorm) and Adam is element-wise,
+so without early stopping a texel's result does not depend on its batch (up to float rounding in batched matrix
+products). WITH early stopping it does: the objective is the batch SUM (as in the reference, whose batches of
+100 stop together), so the stopping ratio is the batch's, which stops when the batch as a whole stops improving.
+Memory: backpropagation keeps the decoder's activations; measured with the shipped compact paper-rig network,
+9.6 GiB for 16,384 texels (H100, 2026-11-25), which is why the default batch bounds it.
 
 Hold-out (paper §7.1 holds out 1 of 64 line photos; the released code uses all 64, reference §9.7):
 `holdout` line indices are left out of the objective and of nothing else (simulate_lines renders every line).
@@ -139,7 +137,10 @@ class FinetuneConfig:
     iterations      override of the per-pass iteration caps (3 ints >= 0); None: from `source`.
     lrs             Adam learning rates per pass: 0.02 / 0.05 / 0.02 (paper and code agree).
     early_stopping  None: from `source` (on for "code", off for "paper").
-    batch           texels per batch; None: all at once (issue #6). The reference uses 100.
+    batch           texels per batch (issue #6: large batches, not the reference's 100); None: all at once. The
+                    default bounds the memory (issue #12): the shipped paper-rig network allocated 9.6 GiB for
+                    16,384 texels on an H100 (2026-11-25), 37.8 GiB for 65,536 in one batch, and a larger batch
+                    gains nothing once the GPU is full.
     holdout         line indices left out of the objective (the paper holds out 1 of 64; code: none).
     sqrt_eps        eps inside the square roots of the objective, network units (ours; module docstring).
     device          torch device of the optimisation ("cpu", "cuda", "cuda:1", ...); the model must be on it.
@@ -149,7 +150,7 @@ class FinetuneConfig:
     iterations: tuple | None = None
     lrs: tuple = (0.02, 0.05, 0.02)
     early_stopping: bool | None = None
-    batch: int | None = None
+    batch: int | None = 16384
     holdout: tuple[int, ...] = ()
     sqrt_eps: float = 1e-6
     device: str = "cpu"
@@ -315,20 +316,24 @@ def simulate_lines(model, latent72, line_weights, batch: int | None = None) -> n
     return out
 
 
-def decode_rgb(model, latent72, batch: int = 65536) -> np.ndarray:
+def decode_rgb(model, latent72, batch: int = 16384, to_numpy: bool = True):
     """(N, L_upper, 3) float32 RGB lumitexels (network units) of RGB latents (N, 3 ad + sd): channel c
-    decodes (a_c, s) (reference §3.3), on the model's device, in eval mode, `batch` texels at a time."""
+    decodes (a_c, s) (reference §3.3), on the model's device, in eval mode, `batch` texels at a time (the
+    paper rig's 12,288 LEDs: 2.4 GB of output a batch, and the decoder's activations). A numpy array, or with
+    to_numpy=False a tensor on the model's device: what the fit takes there, without a round trip through the
+    host (9.7 GB each way for 65,536 paper-rig texels)."""
     ad, sd, num_leds = _check_model(model)
     x = _as_float_tensor("latent72", latent72)
     if x.ndim != 2 or x.shape[1] != 3 * ad + sd:
         raise ValueError(f"latent72 must have shape (N, {3 * ad + sd}), got {tuple(x.shape)}")
     _check_finite("latent72", x)
     dev = _model_device(model)
-    out = np.empty((x.shape[0], num_leds, 3), dtype=np.float32)
+    out = torch.empty((x.shape[0], num_leds, 3), dtype=torch.float32, device="cpu" if to_numpy else dev)
     with _frozen(model), torch.no_grad():
         for i in range(0, x.shape[0], batch):
-            out[i:i + batch] = _decode_rgb(model, x[i:i + batch].to(dev), ad).permute(1, 2, 0).cpu().numpy()
-    return out
+            out[i:i + batch] = _decode_rgb(model, x[i:i + batch].to(dev), ad).permute(1, 2, 0)
+    _release(dev)
+    return out.numpy() if to_numpy else out
 
 
 # ------------------------------------------------------------------------------------------------ objective
@@ -397,6 +402,15 @@ def _resolve(device: str) -> torch.device:
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def _release(device: torch.device) -> None:
+    """Give torch's cached GPU blocks back to the device at the end of a stage: the decoder's activations are
+    sized unlike the next stage's tensors (the fit's, Warp's), which otherwise come on top of the cache
+    (issue #12 counts the device's used memory: 62 GB for a 65,536-texel paper-rig bench, 2026-11-25, against
+    28 GiB that torch ever held at once)."""
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
 
 
 # ------------------------------------------------------------------------------------------------ finetune
@@ -492,6 +506,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
         seconds["pass3"] = time.perf_counter() - t0
         passes["pass3"] = rgb3
 
+    _release(dev)
     out = {p: passes[p].numpy().astype(np.float32, copy=False) for p in PASSES}
     return FinetuneResult(latent=out["pass3"], passes=out, history=history, iterations=iterations,
                           objective={p: (before[p], after[p]) for p in PASSES[1:]}, seconds=seconds,

@@ -22,10 +22,18 @@ Loss per texel (reference §5 adds lambda_m times the line term to the lumitexel
 Albedos in closed form. Eq. 1 is linear in the albedos: m_hat[l, c] = rho_d[c] D[l, c] + rho_s[c] S[l, c]
 with D = I_c Psi V (wi.n) / (pi r^2) and S = I_c Psi V fs (wi.n) / r^2 (twin.optics.lumitexel's docstring; Schlick's
 F0 is grey, so fs is one number per LED). ONE launch of the forward model with rho_d = (1, 0, 0) and
-rho_s = (0, 1, 0) gives D in channel 0 and S in channel 1; the other channels follow from the LEDs' RGB
-intensities (D[l, c] = D[l, 0] I[l, c] / I[l, 0]). For given geometry, rho_d and rho_s then minimise the
-loss's Gauss-Newton quadratic at the target (weights f'(m)^2; exact for "mse") on the box [0, 1] x
-[0, rho_s_max], per texel and channel, lumitexel and line terms together (`_projected`).
+rho_s = (0, 1, 0) gives D in channel 0 and S in channel 1 (twin.optics.jvp.basis_jvp, which also gives their
+derivatives for the Jacobian); the other channels follow from the LEDs' RGB intensities (D[l, c] = D[l, 0] I[l, c]
+/ I[l, 0]), and so do the photos' predictions, one matrix product of the grey bases with the weights times those
+ratios. For given geometry, rho_d and rho_s then minimise the loss's Gauss-Newton quadratic at the target
+(weights f'(m)^2; exact for "mse") on the box [0, 1] x [0, rho_s_max], per texel and channel, lumitexel and line
+terms together (`_projected`).
+
+Sums over the LEDs in Warp (issue #12). Every per-texel sum over the lumitexels' LEDs and channels, the albedo
+quadratic's, the loss's and the Gauss-Newton system's J J^T and J r, is one Warp launch over the grey bases
+(reconstruction.fit_sums), which never stores a (texels x LEDs x 3) tensor beyond the target itself; torch keeps
+the photos' few residuals. On the paper rig on an H100 this made the fit 3x faster and its memory half
+(docs/performance.md); the stored-Jacobian path (_analytic_jacobian, _residuals) stays as the checked reference.
 
 Parameterisation of the geometry: 5 unconstrained numbers per texel, [u, v, theta, a_x, a_y]:
   * n = normalize(N + u X + v Y) for the sample plane's normal N and axes X, Y (twin.materials.samples): n.N > 0 for
@@ -102,6 +110,7 @@ from torch import nn
 import twin
 from twin.materials.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDFMaps, canonical_anisotropy
 
+from . import fit_sums
 from .data import LUMITEXEL_SCALE
 
 __all__ = ["FitConfig", "FitResult", "fit_ggx", "fit_method", "to_maps", "FITTING_METHODS", "METHODS", "LOSSES"]
@@ -111,10 +120,12 @@ JACOBIANS = ("analytic", "forward")  # FitConfig.jacobian
 METHODS = ("direct", "neural")  # FITTING_METHODS below: one function each
 GEOMETRY_SIZE = 5  # [u, v, theta, a_x, a_y]
 # texel-LED pairs evaluated at once when FitConfig.batch is None (ours, memory): every texel of a mini-rig grid up
-# to 290^2 in one range; 2,730 texels on the paper rig, where a 256^2 grid in one range asked an H100 for 12 GB
-# per forward model (and the Levenberg-Marquardt's forward-difference Jacobian evaluates six; the analytic one keeps
-# five derivatives of each basis and a 5-row Jacobian, about as much), and 16,384 texels ran out of its 80 GB
-AUTO_CHUNK_PAIRS = 2 ** 25
+# to 410^2 in one range; 5,461 texels on the paper rig. A pair costs the grey bases and their 5 derivatives of each
+# view (2 x 12 floats), the chunk's copy of its target (3 floats) and passing temporaries, about 8 GB a chunk here.
+# (Before the fit's sums moved into Warp, reconstruction.fit_sums, it stored (texels x LEDs x 3) tensors for the
+# albedo weights, the loss and each of 5 Jacobian rows, and held 2^25 pairs: 16,384 paper texels at once ran out of
+# an H100's 80 GB.)
+AUTO_CHUNK_PAIRS = 2 ** 26
 HEADS = (("normal", 2), ("theta", 1), ("alpha", 2), ("rho_d", 3), ("rho_s", 3))  # reference §5's 5 heads
 
 
@@ -141,7 +152,7 @@ class FitConfig:
     # `hemicube bench fit-jacobian`)
     jacobian: str = "analytic"
     fd_step: float = 1e-3  # direct: forward-difference step of the Jacobian in every number (ours), and the
-    # analytic one's where a lobe is isotropic (_tensor_jacobian)
+    # analytic one's where a lobe is isotropic (_tensor_system)
     tolerance: float = 1e-5  # direct: a texel stops when a kept step lowers its loss by less (relative; ours)
     propagation: int = 2  # direct, on a grid: rounds of neighbour propagation (ours; _propagate)
     # direct, on a grid (ours; _joint_roughness): the expected change of log alpha between neighbouring texels of
@@ -251,9 +262,10 @@ class _Problem:
     rig: object
     config: FitConfig
     pos: torch.Tensor  # (n, 3) float32, mm
-    target: torch.Tensor  # (n, L, 3) the lumitexels m
-    target_f: torch.Tensor  # (n, L, 3) f(m) (the loss compares f(m_hat) with it; `_f`)
-    weight: torch.Tensor  # (n, L, 3) the albedo quadratic's weights f'(m)^2 / (3 L)
+    # (n, L, 3) the lumitexels m; the loss's f(m) and the albedo quadratic's weights f'(m)^2 / (3 L) are derived
+    # where they are used (the Warp sums, reconstruction.fit_sums, from m itself), not stored: at 12,288 LEDs each
+    # is 147 kB a texel
+    target: torch.Tensor
     photos: tuple  # _Photos of each camera that has measurements (primary first); empty: lumitexels only
     upper_rig: object  # the rig with its upper LEDs only: what the fit evaluates (the bottom ones light nothing here)
     ratio: torch.Tensor  # (2, L, 3): I[l, c] / I[l, 0] and I[l, c] / I[l, 1] (module docstring)
@@ -268,10 +280,14 @@ class _Problem:
     def has_lines(self) -> bool:
         return bool(self.photos) and self.config.lambda_lines > 0
 
+    @property
+    def target_f(self) -> torch.Tensor:
+        """(n, L, 3) f(m): what the loss compares f(m_hat) with (`_f`)."""
+        return _f(self.target, self.config.loss, self.scale_m)
+
     def part(self, idx: torch.Tensor) -> "_Problem":
         """The same problem for the texels idx."""
-        return replace(self, pos=self.pos[idx], target=self.target[idx], target_f=self.target_f[idx],
-                       weight=self.weight[idx], photos=tuple(g.part(idx) for g in self.photos))
+        return replace(self, pos=self.pos[idx], target=self.target[idx], photos=tuple(g.part(idx) for g in self.photos))
 
 
 def _f(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
@@ -303,11 +319,31 @@ def _tensor(name: str, x, ndim: int, device: torch.device) -> torch.Tensor:
         t = torch.as_tensor(a, dtype=torch.float32, device=device)
     if t.ndim != ndim or t.shape[-1] != 3:
         raise ValueError(f"{name} must have {ndim} dimensions with 3 last (RGB or xyz), got shape {tuple(t.shape)}")
-    bad = ~torch.isfinite(t)
-    if bad.any():
-        first = tuple(int(i) for i in torch.nonzero(bad)[0])
-        raise ValueError(f"{name} contains NaN or Inf (first at index {first})")
+    for i, part in enumerate(_pieces(t)):
+        bad = ~torch.isfinite(part)
+        if bad.any():
+            first = np.unravel_index(i * _PIECE + int(torch.nonzero(bad)[0, 0]), tuple(t.shape))
+            raise ValueError(f"{name} contains NaN or Inf (first at index {tuple(int(v) for v in first)})")
     return t
+
+
+_PIECE = 2 ** 24  # elements a piece: _pieces
+
+
+def _pieces(t: torch.Tensor):
+    """The flattened tensor in pieces of _PIECE elements: the checks and means of the fit's inputs go piece by
+    piece, so that none makes a temporary the size of the paper rig's lumitexels (9.7 GB per 65,536 texels; a
+    float64 mean of them cast the whole tensor first)."""
+    return t.reshape(-1).split(_PIECE)
+
+
+def _negative(t: torch.Tensor) -> bool:
+    return any(bool((p < 0).any()) for p in _pieces(t))
+
+
+def _mean(t: torch.Tensor) -> float:
+    """The mean in float64, piece by piece."""
+    return sum(float(p.sum(dtype=torch.float64)) for p in _pieces(t)) / max(t.numel(), 1)
 
 
 def _photos(name: str, wname: str, camera: str, M, W, n: int, L: int, config: FitConfig, dev,
@@ -321,9 +357,9 @@ def _photos(name: str, wname: str, camera: str, M, W, n: int, L: int, config: Fi
                          f"got {tuple(W.shape)}")
     if tuple(M.shape) != (n, W.shape[0], 3):
         raise ValueError(f"{name} must have shape (N, K, 3) = ({n}, {W.shape[0]}, 3), got {tuple(M.shape)}")
-    if (M < 0).any() or (W < 0).any():
+    if _negative(M) or _negative(W):
         raise ValueError(f"{name} and {wname} must be >= 0 (light measurements and LED drive levels)")
-    scale = max(float(M.mean(dtype=torch.float64)), 1e-12)
+    scale = max(_mean(M), 1e-12)
     lam = config.lambda_lines * W.shape[0] / total
     M = M.permute(2, 0, 1).contiguous()
     return _Photos(camera, M, _f(M, config.loss, scale), _df2(M, config.loss, scale) * (lam / (3 * W.shape[0])),
@@ -350,7 +386,7 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
     if tuple(m.shape) != (n, L, 3):
         raise ValueError(f"lumitexels must have shape (N, L_upper, 3) = ({n}, {L}, 3) for rig {rig.name!r} "
                          f"(upper LEDs only, network units), got {tuple(m.shape)}")
-    if (m < 0).any():
+    if _negative(m):
         raise ValueError(f"lumitexels must be >= 0 (decoded lumitexels are clamped at 0), got min {float(m.min()):g}")
     if (lines is None) != (line_weights is None):
         raise ValueError("lines and line_weights go together: give both or neither")
@@ -361,7 +397,6 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
         if R * C != n:
             raise ValueError(f"grid_shape {tuple(grid_shape)} has {R * C} texels but positions has {n} "
                              "(texels in row-major order of the grid)")
-    loss = config.loss
     photos = []
     if secondary is not None and lines is None:
         raise ValueError("secondary photos need the primary ones (lines) too")
@@ -371,13 +406,13 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
     if secondary is not None:
         photos.append(_photos("secondary photos", "their weights", config.secondary_camera, *secondary, n, L, config,
                               dev, total))
-    scale_m = max(float(m.mean(dtype=torch.float64)), 1e-12)
+    scale_m = max(_mean(m), 1e-12)
 
     def T(a):
         return torch.as_tensor(a, dtype=torch.float32, device=dev)
 
     s = rig.sample
-    return _Problem(rig, config, pos, m, _f(m, loss, scale_m), _df2(m, loss, scale_m) / (3 * L), tuple(photos),
+    return _Problem(rig, config, pos, m, tuple(photos),
                     replace(rig, leds=rig.leds.subset(upper)),
                     T(np.stack([intensity / intensity[:, :1], intensity / intensity[:, 1:2]])),
                     T(np.stack([s.normal, s.x_axis, s.y_axis])), scale_m)
@@ -451,60 +486,77 @@ def _lumitexels(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Te
     return m * LUMITEXEL_SCALE
 
 
-def _bases(prob: _Problem, geom: dict, camera: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """D, S (n, L, 3): the lumitexels of unit diffuse and unit specular albedo, from one launch (module
-    docstring): rho_d = (1, 0, 0), rho_s = (0, 1, 0); the other channels by the LEDs' intensity ratios."""
-    e = torch.eye(3, device=prob.pos.device)
-    return _split(prob, _lumitexels(prob, geom, e[0].expand(prob.n, 3), e[1].expand(prob.n, 3), camera))
+def _grey(prob: _Problem, geom: dict, camera: str | None = None, derivatives: tuple | None = None):
+    """The grey bases val (2, n, L) = D0, S0 in network units: the lumitexels of unit diffuse and unit specular
+    albedo in the LEDs' first and second channel, seen from `camera` (None: config.camera), one Warp launch of
+    twin.optics.jvp.basis_jvp (the same led_response as the forward model); the channels follow by the LEDs'
+    intensity ratios (_split, module docstring). With derivatives = (d_frame, d_log_alpha) (_frame_derivatives),
+    (val, dD0, dS0), the bases' derivatives (n, 5, L) along the 5 numbers."""
+    from twin.optics.jvp import basis_jvp
+
+    d_frame, d_log_alpha = derivatives or (prob.pos.new_zeros(prob.n, 0, 3, 3), prob.pos.new_zeros(prob.n, 0, 2))
+    val, dD0, dS0 = basis_jvp(prob.upper_rig, prob.pos, geom["normal"], geom["tangent"], geom["alpha_x"],
+                              geom["alpha_y"], d_frame, d_log_alpha, camera=camera or prob.config.camera,
+                              visibility=True)
+    val.mul_(LUMITEXEL_SCALE)  # in place: basis_jvp's outputs are fresh, and at 12,288 LEDs large
+    return (val, dD0.mul_(LUMITEXEL_SCALE), dS0.mul_(LUMITEXEL_SCALE)) if derivatives else val
 
 
-def _split(prob: _Problem, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """D, S (n, L, 3) of the launch's channels 0 (diffuse) and 1 (specular), m (n, L, >= 2), network units."""
-    return m[..., 0:1] * prob.ratio[0], m[..., 1:2] * prob.ratio[1]
+def _split(prob: _Problem, val: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """D, S (n, L, 3) of the grey bases val (2, n, L) (_grey)."""
+    return val[0][..., None] * prob.ratio[0], val[1][..., None] * prob.ratio[1]
 
 
-def _project(W: torch.Tensor, D: torch.Tensor, S: torch.Tensor) -> list:
-    """(W D, W S), each (3, n, K), for bases (n, L, 3) and a photo group's weights W (3, L, K)."""
-    return [torch.matmul(x.permute(2, 0, 1), W) for x in (D, S)]
+def _project(g: "_Photos", x: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
+    """A photo group's predictions (3, n, ..., K) of grey bases x (n, ..., L) whose channels follow by `ratio` (L, 3):
+    one matrix product with the weights W[c] ratio[:, c], all channels side by side."""
+    W = (g.W * ratio.T[:, :, None]).permute(1, 0, 2).reshape(g.W.shape[1], -1)  # (L, 3 K)
+    out = (x.reshape(-1, x.shape[-1]) @ W).reshape(*x.shape[:-1], 3, g.W.shape[2])
+    return out.movedim(-2, 0)
 
 
-def _photo_bases(prob: _Problem, geom: dict, D: torch.Tensor, S: torch.Tensor) -> list:
-    """For each photo group (prob.photos): (W D, W S), each (3, n, K), the bases of its camera (D, S for
+def _photo_bases(prob: _Problem, geom: dict, val: torch.Tensor) -> list:
+    """For each photo group (prob.photos): (W D, W S), each (3, n, K), the bases of its camera (val for
     config.camera, one more launch for another) under its weights; [] without photos."""
     if not prob.has_lines:
         return []
-    bases = {prob.config.camera: (D, S)}
+    bases = {prob.config.camera: val}
     out = []
     for g in prob.photos:
         if g.camera not in bases:
-            bases[g.camera] = _bases(prob, geom, g.camera)
-        out.append(tuple(_project(g.W, *bases[g.camera])))
+            bases[g.camera] = _grey(prob, geom, g.camera)
+        out.append(_photo_pair(prob, g, bases[g.camera]))
     return out
+
+
+def _photo_pair(prob: _Problem, g: "_Photos", val: torch.Tensor) -> tuple:
+    """(W D, W S), each (3, n, K): a photo group's predictions of the grey bases val (2, n, L) of its camera."""
+    return _project(g, val[0], prob.ratio[0]), _project(g, val[1], prob.ratio[1])
 
 
 def _solve_box(dd, dm, ds, ss, sm, rho_s_max: float):
     """argmin over a in [0, 1], b in [0, rho_s_max] of a^2 dd + 2ab ds + b^2 ss - 2a dm - 2b sm (elementwise).
     A convex quadratic on a box: its minimum is the unconstrained one when that is feasible, else on an
-    edge, where it is the 1-D minimum clipped to the edge; all five are evaluated, the best feasible kept."""
+    edge, where it is the 1-D minimum clipped to the edge; all five are evaluated, the best feasible kept (the
+    first of equals; (0, 0) where none is feasible). The five side by side, in one set of operations: on a GPU
+    this runs once per evaluation of the loss, and one operation per candidate was launch-bound there."""
     tiny = 1e-30
     det = (dd * ss - ds * ds).clamp_min(tiny)
-    cands = [((dm * ss - sm * ds) / det, (sm * dd - dm * ds) / det)]
-    for a_edge in (0.0, 1.0):  # a on an edge, b free
-        cands.append((torch.full_like(dd, a_edge), ((sm - a_edge * ds) / ss.clamp_min(tiny)).clamp(0, rho_s_max)))
-    for b_edge in (0.0, rho_s_max):
-        cands.append((((dm - b_edge * ds) / dd.clamp_min(tiny)).clamp(0, 1), torch.full_like(dd, b_edge)))
-    best_e = torch.full_like(dd, math.inf)
-    best_a, best_b = torch.zeros_like(dd), torch.zeros_like(dd)
-    for a, b in cands:
-        e = a * a * dd + b * b * ss + 2 * a * b * ds - 2 * a * dm - 2 * b * sm
-        better = (a >= 0) & (a <= 1) & (b >= 0) & (b <= rho_s_max) & torch.isfinite(e) & (e < best_e)
-        best_e, best_a, best_b = (torch.where(better, e, best_e), torch.where(better, a, best_a),
-                                  torch.where(better, b, best_b))
-    return best_a, best_b
+    s_, d_ = ss.clamp_min(tiny), dd.clamp_min(tiny)
+    zero, one, top = torch.zeros_like(dd), torch.ones_like(dd), torch.full_like(dd, rho_s_max)
+    a = torch.stack([(dm * ss - sm * ds) / det, zero, one, (dm / d_).clamp(0, 1),
+                     ((dm - rho_s_max * ds) / d_).clamp(0, 1)])
+    b = torch.stack([(sm * dd - dm * ds) / det, (sm / s_).clamp(0, rho_s_max), ((sm - ds) / s_).clamp(0, rho_s_max),
+                     zero, top])
+    e = a * a * dd + b * b * ss + 2 * a * b * ds - 2 * a * dm - 2 * b * sm
+    ok = (a >= 0) & (a <= 1) & (b >= 0) & (b <= rho_s_max) & torch.isfinite(e)
+    best = torch.where(ok, e, torch.full_like(e, math.inf)).argmin(0, keepdim=True)
+    found = ok.any(0)
+    return (torch.where(found, a.gather(0, best)[0], zero), torch.where(found, b.gather(0, best)[0], zero))
 
 
-def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: list, sums: list | None = None):
-    """(n, 3) rho_d, rho_s in closed form (module docstring) for the bases D, S and each photo group's
+def _projected(prob: _Problem, val: torch.Tensor, photo_bases: list, sums: list | None = None):
+    """(n, 3) rho_d, rho_s in closed form (module docstring) for the grey bases val (_grey) and each photo group's
     predictions (W D, W S) (_photo_bases), and the albedos each photo group is predicted with: config.camera's
     share the lumitexels' (the result), another camera's photos get their own pair, fitted to them alone (ours:
     the 45-degree view's texel footprint is ~1.4x longer, so where the colour varies it averages another
@@ -515,25 +567,29 @@ def _projected(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: li
     `sums`: _albedo_sums of these bases, when the caller has them. Returns (rho_d, rho_s, [(rho_d, rho_s) of
     each photo group])."""
     with torch.no_grad():
-        sums = sums if sums is not None else _albedo_sums(prob, D, S, photo_bases)
+        sums = sums if sums is not None else _albedo_sums(prob, val, photo_bases)
         a, b = _solve_box(*(s.double() for s in sums), prob.config.rho_s_max)
-        albedos = (a.to(D.dtype), b.to(D.dtype))
+        albedos = (a.to(val.dtype), b.to(val.dtype))
         own = [albedos if g.camera == prob.config.camera else _own_albedos(prob, g, WD, WS)
                for g, (WD, WS) in zip(prob.photos, photo_bases)]
     return albedos[0], albedos[1], own
 
 
-def _albedo_sums(prob: _Problem, D: torch.Tensor, S: torch.Tensor, photo_bases: list) -> list:
+def _albedo_sums(prob: _Problem, val: torch.Tensor, photo_bases: list, derivatives: tuple | None = None):
     """The albedo quadratic's sums (dd, dm, ds, ss, sm), each (n, 3), of the lumitexels and config.camera's
-    photos (_solve_box's a^2 dd + 2ab ds + b^2 ss - 2a dm - 2b sm: the loss to second order in the albedos)."""
+    photos (_solve_box's a^2 dd + 2ab ds + b^2 ss - 2a dm - 2b sm: the loss to second order in the albedos), the
+    lumitexels' in one Warp launch (reconstruction.fit_sums). With derivatives = (dD0, dS0, photo_dbases), the
+    bases' derivatives (n, 5, L) and each photo group's (dWD, dWS) (3, n, 5, K): (sums, their derivatives, each
+    (n, 5, 3))."""
     with torch.no_grad():
-        w, m = prob.weight, prob.target
-        wD, wS = w * D, w * S
-        sums = [(wD * D).sum(1), (wD * m).sum(1), (wD * S).sum(1), (wS * S).sum(1), (wS * m).sum(1)]
-        for g, (WD, WS) in zip(prob.photos, photo_bases):
+        dD0, dS0, dpb = derivatives or (None, None, None)
+        sums, dsums = fit_sums.albedo_sums(val, prob.target, prob.ratio, prob.config.loss, prob.scale_m, dD0, dS0)
+        for i, (g, (WD, WS)) in enumerate(zip(prob.photos, photo_bases)):
             if g.camera == prob.config.camera:
                 sums = [s + e for s, e in zip(sums, _photo_terms(g, WD, WS))]
-    return sums
+                if derivatives:
+                    dsums = [s + e for s, e in zip(dsums, _photo_dterms(g, WD, WS, *dpb[i]))]
+    return (sums, dsums) if derivatives else sums
 
 
 def _photo_terms(g: _Photos, WD: torch.Tensor, WS: torch.Tensor) -> list:
@@ -548,26 +604,45 @@ def _own_albedos(prob: _Problem, g: _Photos, WD: torch.Tensor, WS: torch.Tensor)
                                                    prob.config.rho_s_max))
 
 
+def _predicted(photo_bases: list, albedos: list) -> list:
+    """Each photo group's predictions (3, n, K) for its bases (W D, W S) and albedos (rho_d, rho_s) (n, 3)."""
+    return [a.T[:, :, None] * WD + b.T[:, :, None] * WS for (WD, WS), (a, b) in zip(photo_bases, albedos)]
+
+
+def _photo_residuals(prob: _Problem, photos_hat: list) -> list:
+    """Each photo group's residuals (n, 3 K), sqrt(lambda / (3 K)) (f(M_hat) - f(M)), for its predictions
+    (3, n, K): the sum of their squares is its share of the per-texel loss (module docstring)."""
+    out = []
+    for g, M_hat in zip(prob.photos, photos_hat):
+        r = (_f(M_hat, prob.config.loss, g.scale) - g.M_f).permute(1, 0, 2).reshape(M_hat.shape[1], -1)
+        out.append(r * math.sqrt(g.lam / M_hat[:, 0].numel()))
+    return out
+
+
 def _loss_of(prob: _Problem, m_hat: torch.Tensor, photos_hat: list) -> torch.Tensor:
     """(n,) per-texel loss (module docstring) of predicted lumitexels (n, L, 3) and photos (each (3, n, K))."""
-    c = prob.config
-    out = (_f(m_hat, c.loss, prob.scale_m) - prob.target_f).square().mean(dim=(1, 2))
-    for g, M_hat in zip(prob.photos, photos_hat):
-        out = out + g.lam * (_f(M_hat, c.loss, g.scale) - g.M_f).square().mean(dim=(0, 2))
-    return out
+    out = (_f(m_hat, prob.config.loss, prob.scale_m) - prob.target_f).square().mean(dim=(1, 2))
+    return out + sum(r.square().sum(1) for r in _photo_residuals(prob, photos_hat))
 
 
 def _projected_loss(prob: _Problem, geom: dict, sums: list | None = None):
     """The loss of `geom` with its closed-form albedos: (loss (n,), rho_d, rho_s); with a list `sums`, the
-    albedo quadratic's sums (_albedo_sums) are appended to it."""
-    D, S = _bases(prob, geom)
-    pb = _photo_bases(prob, geom, D, S)
-    own_sums = _albedo_sums(prob, D, S, pb)
+    albedo quadratic's sums (_albedo_sums) are appended to it. The lumitexels' share in one Warp launch
+    (reconstruction.fit_sums), the photos' in torch."""
+    val = _grey(prob, geom)
+    pb = _photo_bases(prob, geom, val)
+    own_sums = _albedo_sums(prob, val, pb)
     if sums is not None:
         sums.append(own_sums)
-    rd, rs, own = _projected(prob, D, S, pb, own_sums)
-    photos_hat = [a.T[:, :, None] * WD + b.T[:, :, None] * WS for (WD, WS), (a, b) in zip(pb, own)]
-    return _loss_of(prob, rd[:, None] * D + rs[:, None] * S, photos_hat), rd, rs
+    rd, rs, own = _projected(prob, val, pb, own_sums)
+    loss = fit_sums.lumitexel_terms(val, prob.target, prob.ratio, rd, rs, prob.config.loss, prob.scale_m)[0]
+    return loss + sum(r.square().sum(1) for r in _photo_residuals(prob, _predicted(pb, own))), rd, rs
+
+
+def _loss(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
+    """(n,) per-texel loss of the direct method's numbers q with their closed-form albedos (_projected_loss): the
+    sum of the squares of _residuals."""
+    return _projected_loss(prob, _log_geometry(q, prob.frame))[0]
 
 
 def _residuals(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
@@ -576,16 +651,13 @@ def _residuals(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
     sqrt(lambda / (3 K)) (f(M_hat) - f(M))."""
     c = prob.config
     geom = _log_geometry(q, prob.frame)
-    D, S = _bases(prob, geom)
-    pb = _photo_bases(prob, geom, D, S)
-    rd, rs, own = _projected(prob, D, S, pb)
+    val = _grey(prob, geom)
+    pb = _photo_bases(prob, geom, val)
+    rd, rs, own = _projected(prob, val, pb)
+    D, S = _split(prob, val)
     m_hat = rd[:, None] * D + rs[:, None] * S
-    out = [(_f(m_hat, c.loss, prob.scale_m) - prob.target_f).reshape(prob.n, -1) / math.sqrt(m_hat[0].numel())]
-    for g, (WD, WS), (a, b) in zip(prob.photos, pb, own):
-        M_hat = a.T[:, :, None] * WD + b.T[:, :, None] * WS
-        r = (_f(M_hat, c.loss, g.scale) - g.M_f).permute(1, 0, 2).reshape(prob.n, -1)
-        out.append(r * math.sqrt(g.lam / M_hat[:, 0].numel()))
-    return torch.cat(out, dim=1)
+    lumi = (_f(m_hat, c.loss, prob.scale_m) - prob.target_f).reshape(prob.n, -1) / math.sqrt(m_hat[0].numel())
+    return torch.cat([lumi, *_photo_residuals(prob, _predicted(pb, own))], dim=1)
 
 
 def _rendered_loss(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch.Tensor) -> torch.Tensor:
@@ -596,9 +668,8 @@ def _rendered_loss(prob: _Problem, geom: dict, rho_d: torch.Tensor, rho_s: torch
         if g.camera == prob.config.camera:
             photos_hat.append(torch.matmul(m_hat.permute(2, 0, 1), g.W))
         else:  # another view: its own closed-form albedos (_projected)
-            WD, WS = (torch.matmul(x.permute(2, 0, 1), g.W) for x in _bases(prob, geom, g.camera))
-            a, b = _own_albedos(prob, g, WD, WS)
-            photos_hat.append(a.T[:, :, None] * WD + b.T[:, :, None] * WS)
+            WD, WS = _photo_pair(prob, g, _grey(prob, geom, g.camera))
+            photos_hat += _predicted([(WD, WS)], [_own_albedos(prob, g, WD, WS)])
     return _loss_of(prob, m_hat, photos_hat)
 
 
@@ -610,7 +681,7 @@ def _peak_normal(prob: _Problem) -> torch.Tensor:
     c = prob.config
     N = prob.frame[0].expand(prob.n, 3)
     geom = _geometry(torch.zeros(prob.n, GEOMETRY_SIZE, device=N.device), prob.frame, c)
-    d0 = _bases(prob, geom)[0].mean(2)
+    d0 = _grey(prob, geom)[0] * prob.ratio[0].mean(1)  # the diffuse basis's mean over the channels
     grey = prob.target.mean(2)
     lit = d0 > 0.05 * d0.amax(1, keepdim=True)
     ratio = torch.where(lit, grey / d0.clamp_min(1e-12), torch.full_like(grey, math.nan))
@@ -635,7 +706,7 @@ def _diffuse_normal(prob: _Problem) -> torch.Tensor:
     c = prob.config
     N = prob.frame[0].expand(prob.n, 3)
     geom = _geometry(torch.zeros(prob.n, GEOMETRY_SIZE, device=N.device), prob.frame, c)
-    d0 = _bases(prob, geom)[0].mean(2)
+    d0 = _grey(prob, geom)[0] * prob.ratio[0].mean(1)  # the diffuse basis's mean over the channels
     led = torch.tensor(prob.upper_rig.leds.positions, dtype=torch.float32, device=N.device)
     w = _unit(led[None] - prob.pos[:, None])  # (n, L, 3)
     cos_n = (w * N[:, None]).sum(-1)
@@ -730,8 +801,9 @@ def _frame_derivatives(prob: _Problem, q: torch.Tensor) -> tuple[dict, torch.Ten
     n = q.shape[0]
     g3 = q[:, :3]
     d_frame = torch.zeros(n, GEOMETRY_SIZE, 3, 3, dtype=q.dtype, device=q.device)
-    for j in range(3):
-        d_frame[:, j] = torch.func.jvp(rows, (g3,), (torch.eye(3, dtype=q.dtype, device=q.device)[j].expand(n, 3),))[1]
+    # the three directions u, v, theta in one batched forward-mode pass (three passes were launch-bound on a GPU)
+    tangents = torch.eye(3, dtype=q.dtype, device=q.device)[:, None].expand(3, n, 3)
+    d_frame[:, :3] = torch.func.vmap(lambda v: torch.func.jvp(rows, (g3,), (v,))[1])(tangents).transpose(0, 1)
     d_log_alpha = torch.zeros(n, GEOMETRY_SIZE, 2, dtype=q.dtype, device=q.device)
     d_log_alpha[:, 3, 0] = d_log_alpha[:, 4, 1] = 1.0
     return _log_geometry(q, prob.frame), d_frame, d_log_alpha
@@ -757,71 +829,71 @@ def _albedo_derivatives(sums: list, dsums: list, a: torch.Tensor, b: torch.Tenso
     return da.to(dtype), db.to(dtype)
 
 
-def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
-    """(n, 5, residuals) Jacobian of _residuals at q, exact: the bases' derivatives from one launch of
-    twin.optics.jvp.basis_jvp per camera, the closed-form albedos' derivatives (_albedo_derivatives), the
-    chain rule through the projections onto the photos' weights and the loss's transform. Costs about one
-    evaluation of the forward model per camera where the forward difference takes five (FitConfig.jacobian)."""
-    from twin.optics.jvp import basis_jvp
-
+def _linearisation(prob: _Problem, q: torch.Tensor):
+    """What the analytic Jacobian of _residuals at q is made of: the bases' derivatives from one launch of
+    twin.optics.jvp.basis_jvp per camera, the closed-form albedos' derivatives (_albedo_derivatives), the chain
+    rule through the projections onto the photos' weights and the loss's transform. Costs about one evaluation
+    of the forward model per camera where the forward difference takes five (FitConfig.jacobian). Returns
+    config.camera's grey bases val (2, n, L) and their derivatives dD0, dS0 (n, 5, L), the shared albedos rd, rs
+    (n, 3) and their derivatives da, db (n, 5, 3), and each photo group's residuals (n, 3 K) and Jacobian rows
+    (n, 5, 3 K)."""
     c = prob.config
     geom, d_frame, d_log_alpha = _frame_derivatives(prob, q)
-    ratio = prob.ratio
-    bases = {}
-    for cam in [c.camera] + [g.camera for g in prob.photos if prob.has_lines]:
-        if cam not in bases:
-            val, dD0, dS0 = basis_jvp(prob.upper_rig, prob.pos, geom["normal"], geom["tangent"], geom["alpha_x"],
-                                      geom["alpha_y"], d_frame, d_log_alpha, camera=cam, visibility=True)
-            # the same products as _bases (so the same numbers), and the derivatives in network units
-            bases[cam] = (*_split(prob, val.permute(1, 2, 0) * LUMITEXEL_SCALE), dD0 * LUMITEXEL_SCALE,
-                          dS0 * LUMITEXEL_SCALE)
-    D, S, dD0, dS0 = bases[c.camera]
-
-    def projected(cam, W):
-        """(W D, W S) (3, n, K) and their derivatives (3, n, J, K): channel c's ratio folded into W."""
-        Dc, Sc, dDc, dSc = bases[cam]
-        out = _project(W, Dc, Sc)
-        n, J, L = dDc.shape
-        for dx, rho in ((dDc, ratio[0]), (dSc, ratio[1])):
-            flat = dx.reshape(n * J, L)
-            out.append(torch.stack([flat @ (rho[:, k, None] * W[k]) for k in range(3)]).reshape(3, n, J, -1))
-        return out
-
-    pb = [projected(g.camera, g.W) for g in prob.photos] if prob.has_lines else []
-    # the shared albedos: the lumitexels' quadratic plus config.camera's photos (_albedo_sums), and derivatives
-    w, m = prob.weight, prob.target
-    sums = _albedo_sums(prob, D, S, [x[:2] for x in pb])
-    wr0, wr1 = w * ratio[0], w * ratio[1]
-    bmm = torch.bmm  # (n, J, L) x (n, L, 3) -> (n, J, 3): the sums' derivatives (_albedo_sums)
-    dsums = [2 * bmm(dD0, wr0 * D), bmm(dD0, wr0 * m), bmm(dD0, wr0 * S) + bmm(dS0, wr1 * D), 2 * bmm(dS0, wr1 * S),
-             bmm(dS0, wr1 * m)]
-    own_d = []
-    for g, (WD, WS, dWD, dWS) in zip(prob.photos, pb):
-        terms = _photo_dterms(g, WD, WS, dWD, dWS)
-        if g.camera == c.camera:
-            dsums = [x + t for x, t in zip(dsums, terms)]
-        own_d.append(terms)
-    rd, rs, own = _projected(prob, D, S, [x[:2] for x in pb], sums)
+    photos = prob.photos if prob.has_lines else ()
+    grey = {}
+    for cam in [c.camera] + [g.camera for g in photos]:
+        if cam not in grey:
+            grey[cam] = _grey(prob, geom, cam, (d_frame, d_log_alpha))
+    val, dD0, dS0 = grey[c.camera]
+    pb = [_photo_pair(prob, g, grey[g.camera][0]) for g in photos]
+    dpb = [(_project(g, grey[g.camera][1], prob.ratio[0]), _project(g, grey[g.camera][2], prob.ratio[1]))
+           for g in photos]  # (3, n, 5, K) each
+    sums, dsums = _albedo_sums(prob, val, pb, (dD0, dS0, dpb))
+    rd, rs, own = _projected(prob, val, pb, sums)
     da, db = _albedo_derivatives(sums, dsums, rd, rs, c.rho_s_max)
+    photo_J = []
+    for g, (WD, WS), (dWD, dWS), (a, b) in zip(photos, pb, dpb, own):
+        if g.camera == c.camera:
+            ga, gb = da, db
+        else:  # its own albedos (_projected), and their own derivatives
+            ga, gb = _albedo_derivatives(_photo_terms(g, WD, WS), _photo_dterms(g, WD, WS, dWD, dWS), a, b,
+                                         c.rho_s_max)
+        M_hat = a.T[:, :, None] * WD + b.T[:, :, None] * WS
+        dM = (ga.permute(2, 0, 1)[..., None] * WD[:, :, None] + gb.permute(2, 0, 1)[..., None] * WS[:, :, None]
+              + a.T[:, :, None, None] * dWD + b.T[:, :, None, None] * dWS)  # (3, n, J, K)
+        fpm = _df(M_hat, c.loss, g.scale) * math.sqrt(g.lam / M_hat[:, 0].numel())
+        photo_J.append((fpm[:, :, None] * dM).permute(1, 2, 0, 3).reshape(prob.n, GEOMETRY_SIZE, -1))
+    return val, dD0, dS0, rd, rs, da, db, _photo_residuals(prob, _predicted(pb, own)), photo_J
+
+
+def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
+    """(n, 5, residuals) Jacobian of _residuals at q, exact (_linearisation), every row stored: what
+    `hemicube bench fit-jacobian` and the tests check against central differences; the fit itself takes the
+    Gauss-Newton system without the rows (_normal_equations)."""
+    val, dD0, dS0, rd, rs, da, db, _, photo_J = _linearisation(prob, q)
+    c, ratio = prob.config, prob.ratio
+    D, S = _split(prob, val)
     m_hat = rd[:, None] * D + rs[:, None] * S
     fp = _df(m_hat, c.loss, prob.scale_m) / math.sqrt(m_hat[0].numel())
     # (n, J, L, 3): f'(m_hat) d m_hat = f'(m_hat) (da D + rd dD + db S + rs dS), in place (the largest tensor here)
     dm = torch.mul(dD0[..., None], (rd[:, None] * ratio[0])[:, None])
     dm.addcmul_(dS0[..., None], (rs[:, None] * ratio[1])[:, None])
     dm.addcmul_(da[:, :, None], D[:, None]).addcmul_(db[:, :, None], S[:, None]).mul_(fp[:, None])
-    out = [dm.reshape(prob.n, GEOMETRY_SIZE, -1)]
-    for g, (WD, WS, dWD, dWS), (a, b), terms in zip(prob.photos, pb, own, own_d):
-        if g.camera == c.camera:
-            ga, gb = da, db
-        else:  # its own albedos (_projected), and their own derivatives
-            sums_g = _photo_terms(g, WD, WS)
-            ga, gb = _albedo_derivatives(sums_g, terms, a, b, c.rho_s_max)
-        M_hat = a.T[:, :, None] * WD + b.T[:, :, None] * WS
-        dM = (ga.permute(2, 0, 1)[..., None] * WD[:, :, None] + gb.permute(2, 0, 1)[..., None] * WS[:, :, None]
-              + a.T[:, :, None, None] * dWD + b.T[:, :, None, None] * dWS)  # (3, n, J, K)
-        fpm = _df(M_hat, c.loss, g.scale) * math.sqrt(g.lam / M_hat[:, 0].numel())
-        out.append((fpm[:, :, None] * dM).permute(1, 2, 0, 3).reshape(prob.n, GEOMETRY_SIZE, -1))
-    return torch.cat(out, dim=2)
+    return torch.cat([dm.reshape(prob.n, GEOMETRY_SIZE, -1), *photo_J], dim=2)
+
+
+def _normal_equations(prob: _Problem, q: torch.Tensor) -> tuple:
+    """(J J^T (n, 5, 5), J r (n, 5), the loss r.r (n,)) of the residuals r = _residuals at q and their analytic
+    Jacobian J (_linearisation). The lumitexels' share, 3 L rows of 5 a texel, is summed in one Warp launch that
+    never stores them (reconstruction.fit_sums.lumitexel_terms); the photos' few rows in torch."""
+    val, dD0, dS0, rd, rs, da, db, photo_r, photo_J = _linearisation(prob, q)
+    loss, A, g = fit_sums.lumitexel_terms(val, prob.target, prob.ratio, rd, rs, prob.config.loss, prob.scale_m,
+                                          dD0, dS0, da, db)
+    for r, J in zip(photo_r, photo_J):
+        A = A + J @ J.transpose(1, 2)
+        g = g + (J @ r[..., None])[..., 0]
+        loss = loss + r.square().sum(1)
+    return A, g, loss
 
 
 def _photo_dterms(g: _Photos, WD, WS, dWD, dWS) -> list:
@@ -833,9 +905,20 @@ def _photo_dterms(g: _Photos, WD, WS, dWD, dWS) -> list:
                                                          dWS * M)]
 
 
-def _jacobian(prob: _Problem, q: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """(n, 5, residuals) Jacobian of _residuals at the numbers q (value r), as FitConfig.jacobian asks."""
-    return _analytic_jacobian(prob, q) if prob.config.jacobian == "analytic" else _forward_difference(prob, q, r)
+def _difference_system(prob: _Problem, q: torch.Tensor, to_numbers=None) -> tuple:
+    """(J J^T, J r, r.r) of _residuals at q (at to_numbers(q), with `to_numbers`) by forward differences
+    (_forward_difference)."""
+    r = _residuals(prob, to_numbers(q) if to_numbers else q)
+    J = _forward_difference(prob, q, r, to_numbers)
+    return J @ J.transpose(1, 2), (J @ r[..., None])[..., 0], r.square().sum(1)
+
+
+def _system(prob: _Problem, q: torch.Tensor) -> tuple:
+    """(J J^T (n, 5, 5), J r (n, 5)): the Gauss-Newton system of _residuals at the numbers q, with the Jacobian
+    that FitConfig.jacobian asks for."""
+    if prob.config.jacobian == "analytic":
+        return _normal_equations(prob, q)[:2]
+    return _difference_system(prob, q)[:2]
 
 
 def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -> torch.Tensor:
@@ -854,8 +937,7 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
     q = q.clone()
     q[:, 3:5] = q[:, 3:5].clamp(lo, hi)
     with torch.no_grad():
-        r = _residuals(prob, q)
-        loss = r.square().sum(1)
+        loss = _loss(prob, q)
         mu = torch.full_like(loss, c.lm_damping)
         active = torch.ones_like(loss, dtype=torch.bool)
         # the Gauss-Newton system of each texel, kept while its numbers stay (a refused step moves nothing)
@@ -867,23 +949,19 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
             if idx.numel():
                 stale = idx[~fresh[idx]]
                 if stale.numel():
-                    J = _jacobian(prob.part(stale), q[stale], r[stale])
-                    AA[stale] = J @ J.transpose(1, 2)
-                    gg[stale] = (J @ r[stale, :, None])[..., 0]
+                    AA[stale], gg[stale] = _system(prob.part(stale), q[stale])
                     fresh[stale] = True
-                part, qa, ra = prob.part(idx), q[idx], r[idx]
+                part, qa = prob.part(idx), q[idx]
                 A, grad = AA[idx], gg[idx]
                 d = torch.diagonal(A, dim1=1, dim2=2)
                 damp = mu[idx, None] * (d + 1e-6 * d.sum(1, keepdim=True) + 1e-20)
                 step = torch.linalg.solve(A + torch.diag_embed(damp), -grad[..., None])[..., 0]
                 qn = qa + step
                 qn[:, 3:5] = qn[:, 3:5].clamp(lo, hi)
-                rn = _residuals(part, qn)
-                ln = rn.square().sum(1)
+                ln = _loss(part, qn)
                 ok = torch.isfinite(ln) & (ln < loss[idx])
                 gain = (loss[idx] - ln) / loss[idx].clamp_min(1e-30)
                 q[idx] = torch.where(ok[:, None], qn, qa)
-                r[idx] = torch.where(ok[:, None], rn, ra)
                 loss[idx] = torch.where(ok, ln, loss[idx])
                 mu[idx] = torch.where(ok, mu[idx] / 3, mu[idx] * 4)
                 fresh[idx] &= ~ok
@@ -895,7 +973,7 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
 def _losses(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
     """(n,) per-texel loss of the direct method's numbers q, in chunks of `batch` texels."""
     with torch.no_grad():
-        return torch.cat([_residuals(prob.part(i), q[i]).square().sum(1) for i in _chunks(prob, prob.config.batch)])
+        return torch.cat([_loss(prob.part(i), q[i]) for i in _chunks(prob, prob.config.batch)])
 
 
 def _propagate(prob: _Problem, q: torch.Tensor, grid_shape) -> tuple[torch.Tensor, int]:
@@ -946,13 +1024,14 @@ def _from_tensor(x: torch.Tensor) -> torch.Tensor:
     return torch.stack([x[:, 0], x[:, 1], torch.atan2(x[:, 4], x[:, 3]) / 2, x[:, 2] + d, x[:, 2] - d], 1)
 
 
-def _tensor_jacobian(prob: _Problem, x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """(n, 5, residuals) Jacobian of _residuals(_from_tensor(x)) (value r) in the tensor coordinates x. The
-    analytic one (FitConfig.jacobian) by the chain rule through _from_tensor, whose angle is undefined where the
-    lobe is isotropic (d = 0): there, for d < 1e-4, by forward differences in x, which stay smooth (its error
-    elsewhere: float32's epsilon / d relative, from the tangent angle's 1 / d)."""
+def _tensor_system(prob: _Problem, x: torch.Tensor) -> tuple:
+    """(J J^T, J r, r.r) of the residuals r = _residuals(_from_tensor(x)) in the tensor coordinates x, J their
+    Jacobian there. The analytic one (FitConfig.jacobian) by the chain rule through _from_tensor (J = dq/dx^T J_q,
+    so J J^T = dq/dx^T (J_q J_q^T) dq/dx), whose angle is undefined where the lobe is isotropic (d = 0): there, for
+    d < 1e-4, by forward differences in x, which stay smooth (its error elsewhere: float32's epsilon / d relative,
+    from the tangent angle's 1 / d)."""
     if prob.config.jacobian != "analytic":
-        return _forward_difference(prob, x, r, _from_tensor)
+        return _difference_system(prob, x, _from_tensor)
     q = _from_tensor(x)
     d = torch.hypot(x[:, 3], x[:, 4])
     ds = d.clamp_min(1e-30)
@@ -961,11 +1040,18 @@ def _tensor_jacobian(prob: _Problem, x: torch.Tensor, r: torch.Tensor) -> torch.
     dq[:, 0, 0] = dq[:, 1, 1] = dq[:, 3, 2] = dq[:, 4, 2] = 1.0
     dq[:, 2, 3], dq[:, 2, 4] = -sin / (2 * ds), cos / (2 * ds)  # theta = atan2(s, c) / 2
     dq[:, 3, 3], dq[:, 3, 4], dq[:, 4, 3], dq[:, 4, 4] = cos, sin, -cos, -sin  # m +- hypot(c, s)
-    J = dq.transpose(1, 2) @ _analytic_jacobian(prob, q)
+    A, g, loss = _normal_equations(prob, q)
+    A = dq.transpose(1, 2) @ A @ dq
+    g = (dq.transpose(1, 2) @ g[..., None])[..., 0]
     near = torch.nonzero(d < 1e-4).flatten()
     if near.numel():
-        J[near] = _forward_difference(prob.part(near), x[near], r[near], _from_tensor)
-    return J
+        A[near], g[near], _ = _difference_system(prob.part(near), x[near], _from_tensor)
+    return A, g, loss
+
+
+def _residual_count(prob: _Problem) -> int:
+    """The number of residuals of a texel (_residuals): 3 per LED and per photo."""
+    return 3 * int(prob.target.shape[1]) + sum(3 * int(g.W.shape[2]) for g in (prob.photos if prob.has_lines else ()))
 
 
 def _colour_weights(rho_d: torch.Tensor, grid_shape, lam: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1059,29 +1145,28 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     def data(x, jac: bool):
         """Per chunk of texels (only the 5 x 5 normal equations are kept, not the Jacobians: the paper rig's
         residuals are 3 x 12,288 + photos per texel): each texel's sum of squared residuals, their total, the
-        Gauss-Newton blocks J^T J and gradients J^T r (None without jac), and the number of residuals a texel."""
-        rows, total, Hs, gs, count = [], 0.0, [], [], 1
+        Gauss-Newton blocks J^T J and gradients J^T r (None without jac)."""
+        rows, Hs, gs = [], [], []
         with torch.no_grad():
             for idx in _chunks(prob, c.batch):
                 part = prob.part(idx)
                 xi = x[idx].float()
-                r = _residuals(part, _from_tensor(xi))
-                rd = r.double()
-                rows.append(rd.square().sum(1))
-                total += float(rd.square().sum())
-                count = r.shape[1]
                 if jac:
-                    J = _tensor_jacobian(part, xi, r).double()
-                    Hs.append(J @ J.transpose(1, 2))
-                    gs.append((J @ rd[..., None])[..., 0])
-        return (torch.cat(rows), total, torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None, count)
+                    H, g, loss = _tensor_system(part, xi)
+                    Hs.append(H.double())
+                    gs.append(g.double())
+                else:
+                    loss = _loss(part, _from_tensor(xi))
+                rows.append(loss.double())
+        rows = torch.cat(rows)
+        return rows, float(rows.sum()), torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None
 
     def prior(x):
         a = x[:, prior_dims]
         return float((a * _laplacian(a, weights, (R, C))).sum())  # sum_{i~j} w_ij |a_i - a_j|^2
 
-    rows, total, JJ, Jr, count = data(x, True)
-    sigma2 = float((rows / max(count - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
+    rows, total, JJ, Jr = data(x, True)
+    sigma2 = float((rows / max(_residual_count(prob) - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
     F = total / sigma2 + prior(x)
     F0, mu, kept, cg = F, c.lm_damping, 0, 0
     for _ in range(c.steps):
@@ -1093,7 +1178,7 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         step, it = _block_pcg(H_damped, weights, (R, C), -g, prior_dims, 10 * (R + C))
         cg += it
         xn = x + step
-        _, total_n, _, _, _ = data(xn, False)
+        _, total_n, _, _ = data(xn, False)
         Fn = total_n / sigma2 + prior(xn)
         if not math.isfinite(Fn) or Fn >= F:
             mu *= 4
@@ -1103,7 +1188,7 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
         if gain < c.tolerance:
             break
-        rows, total, JJ, Jr, count = data(x, True)
+        rows, total, JJ, Jr = data(x, True)
     out = _from_tensor(x.float())
     out[:, 3:5] = out[:, 3:5].clamp(lo, hi)
     return out, {"joint_steps": kept, "joint_cg_iterations": cg, "joint_objective": [F0, F],

@@ -78,16 +78,29 @@ JAC = ["bench", "fit-jacobian", "--rig", "mini", "--texels", "64", "--repeats", 
 def test_bench_fit_jacobian_checks_the_analytic_one_and_a_one_percent_error_fails(capsys, monkeypatch):
     rc, res, _ = _run(JAC, capsys)
     assert rc == 0 and res["passed"] and set(res["seconds"]) == {"analytic", "baseline_forward_difference",
-                                                                  "residuals"}
-    c = res["checks"][0]
+                                                                  "residuals", "normal_equations", "loss"}
+    c, system = res["checks"]
     assert c["check"] == "analytic_vs_central_difference_jacobian" and c["median_rel_diff"] < c["bound"]
     assert c["forward_difference_median_rel_diff"] > c["median_rel_diff"]  # the baseline's truncation, reported
+    assert system["check"] == "normal_equations_vs_stored_jacobian"
+    assert max(system["median_rel_diff_JJt"], system["median_rel_diff_Jr"]) < system["bound"] / 10
     import reconstruction.fitting as F
 
     plain = F._analytic_jacobian
     monkeypatch.setattr(F, "_analytic_jacobian", lambda *a: plain(*a) * 1.01)
     rc, res, err = _run(JAC, capsys)
     assert rc == 1 and "analytic_vs_central_difference_jacobian" in err
+
+
+def test_bench_fit_jacobian_fails_a_normal_equations_one_row_off(capsys, monkeypatch):
+    """The Warp-summed system (fitting._normal_equations) against the stored Jacobian's: its J r off by 1% fails
+    the check."""
+    import reconstruction.fitting as F
+
+    plain = F._normal_equations
+    monkeypatch.setattr(F, "_normal_equations", lambda *a: (lambda A, g, e: (A, g * 1.01, e))(*plain(*a)))
+    rc, res, err = _run(JAC, capsys)
+    assert rc == 1 and "normal_equations_vs_stored_jacobian" in err
 
 
 @pytest.mark.parametrize("argv, message", [(["--repeats", "0"], "repeats must be a positive integer"),

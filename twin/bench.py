@@ -57,6 +57,61 @@ def same_work(name: str, got, ref, *, rtol: float, atol: float = 0.0) -> dict:
             "passed": finite and worst <= 1.0}
 
 
+class PeakDeviceMemory:
+    """The peak of a CUDA device's used memory while the block runs, polled every `interval` seconds from NVML
+    (torch.cuda.device_memory_used), else from `nvidia-smi`: what Warp's and torch's allocations (and their
+    caches) hold together, which no one allocator's counter shows. `peak_mib` stays None where neither answers
+    (no GPU, no driver tools).
+
+        with PeakDeviceMemory("cuda:0") as mem:
+            ...
+        mem.peak_mib
+    """
+
+    def __init__(self, device: str, interval: float = 0.1):
+        self.device, self.interval, self.peak_mib = str(device), interval, None
+        self._stop = None
+
+    def _used_mib(self) -> float | None:
+        import subprocess
+
+        import torch
+
+        index = torch.device(self.device).index or 0
+        try:
+            return torch.cuda.device_memory_used(index) / 2 ** 20
+        except Exception:  # noqa: BLE001  (no NVML binding: ask the driver's tool)
+            try:
+                out = subprocess.run(["nvidia-smi", f"--id={index}", "--query-gpu=memory.used",
+                                      "--format=csv,noheader,nounits"], capture_output=True, text=True, timeout=10)
+                return float(out.stdout.strip().splitlines()[0])
+            except (OSError, ValueError, IndexError, subprocess.SubprocessError):
+                return None
+
+    def _poll(self) -> None:
+        while not self._stop.is_set():
+            used = self._used_mib()
+            if used is None:
+                return
+            self.peak_mib = max(self.peak_mib or 0.0, used)
+            self._stop.wait(self.interval)
+
+    def __enter__(self):
+        import threading
+
+        if self.device.startswith("cuda"):
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._poll, daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self._stop is not None:
+            self._stop.set()
+            self._thread.join()
+        return False
+
+
 def finish_checks(result: dict, checks: list[dict]) -> dict:
     result["checks"] = checks
     result["passed"] = all(c["passed"] for c in checks)

@@ -105,7 +105,7 @@ def basis_jvp_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l
     vs = m[1]
     val[0, p, l] = vd
     val[1, p, l] = vs
-    if lbot[l] != 0 or (vd == zero and vs == zero):
+    if lbot[l] != 0 or (vd == zero and vs == zero) or d_frame.shape[1] == 0:  # no derivatives asked: the bases alone
         return
     f = frames[p]
     wi_w = wp.normalize(lpos[l] - x)
