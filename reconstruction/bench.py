@@ -159,7 +159,7 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
 
     from twin.bench import same_work
 
-    from .finetune import FinetuneConfig, _sync, decode_rgb, finetune, simulate_lines
+    from .finetune import FinetuneConfig, _sync, decoded_lumitexels, finetune, simulate_lines
     from .fitting import FitConfig, fit_ggx
     from .latents import decode
 
@@ -195,7 +195,7 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
     full_a, full_b = simulate_lines(model, ft_ref.latent, W), simulate_lines(model, runs["paper_counts"].latent[:nb], W)
     full_diff = float(np.max(np.abs(full_a - full_b)) / max(float(np.max(np.abs(full_b))), 1e-30))
     t = time.perf_counter()
-    lumi = exact if exact is not None else decode_rgb(model, runs["default"].latent, to_numpy=False)
+    lumi = exact if exact is not None else decoded_lumitexels(model, runs["default"].latent)
     fit = fit_ggx(rig, pos, lumi, lines=lines, line_weights=W, config=FitConfig(device=dev))
     sync()
     return t_decode, runs, ft_seconds, (nb, t_finetune_ref, full_diff), check, fit, time.perf_counter() - t

@@ -79,7 +79,7 @@ import torch
 from .network import AcquisitionNet, _is_int, _is_real
 
 __all__ = ["FinetuneConfig", "FinetuneResult", "EarlyStopRule", "EARLY_STOP", "SOURCES", "PASSES", "finetune",
-           "simulate_lines", "decode_rgb", "grey_to_rgb"]
+           "simulate_lines", "decode_rgb", "decoded_lumitexels", "grey_to_rgb"]
 
 PASSES = ("pass0", "pass1", "pass2", "pass3")
 CHANNELS = "RGB"
@@ -320,20 +320,48 @@ def decode_rgb(model, latent72, batch: int = 16384, to_numpy: bool = True):
     """(N, L_upper, 3) float32 RGB lumitexels (network units) of RGB latents (N, 3 ad + sd): channel c
     decodes (a_c, s) (reference §3.3), on the model's device, in eval mode, `batch` texels at a time (the
     paper rig's 12,288 LEDs: 2.4 GB of output a batch, and the decoder's activations). A numpy array, or with
-    to_numpy=False a tensor on the model's device: what the fit takes there, without a round trip through the
-    host (9.7 GB each way for 65,536 paper-rig texels)."""
-    ad, sd, num_leds = _check_model(model)
+    to_numpy=False a tensor on the model's device. For the fit, decoded_lumitexels decodes chunk by chunk
+    instead: all texels' lumitexels at once are 150 GB for a 1024^2 paper-rig sample."""
+    x = _checked_latent72(model, latent72)
+    out = _decode_rows(model, x, batch, "cpu" if to_numpy else _model_device(model))
+    _release(_model_device(model))
+    return out.numpy() if to_numpy else out
+
+
+def decoded_lumitexels(model, latent72, batch: int = 16384, max_bytes: int = 2 ** 31):
+    """The RGB lumitexels (decode_rgb) for reconstruction.fitting.fit_ggx, on the model's device: decoded at once
+    where they take at most `max_bytes` (a mini-rig grid: 11 MB), else a lumitexel source, a function of texel
+    indices (a tensor) that decodes those texels when the fit asks for a chunk, so that only a chunk's lumitexels
+    exist at a time (issue #12: a 1024^2 paper-rig sample's are 150 GB). The latents are checked and moved to the
+    device once; a chunk decoded again costs a third of one fine-tuning step (a forward pass, no backward)."""
+    x = _checked_latent72(model, latent72).to(_model_device(model))
+    if x.shape[0] * _check_model(model)[2] * 3 * 4 <= max_bytes:
+        return _decode_rows(model, x, batch, x.device)
+
+    def source(idx: torch.Tensor) -> torch.Tensor:
+        return _decode_rows(model, x[idx.to(x.device)], batch, x.device)
+
+    return source
+
+
+def _checked_latent72(model, latent72) -> torch.Tensor:
+    ad, sd, _ = _check_model(model)
     x = _as_float_tensor("latent72", latent72)
     if x.ndim != 2 or x.shape[1] != 3 * ad + sd:
         raise ValueError(f"latent72 must have shape (N, {3 * ad + sd}), got {tuple(x.shape)}")
     _check_finite("latent72", x)
+    return x
+
+
+def _decode_rows(model, x: torch.Tensor, batch: int, device) -> torch.Tensor:
+    """decode_rgb's lumitexels of checked latents x, `batch` texels at a time, into a tensor on `device`."""
+    ad, _, num_leds = _check_model(model)
     dev = _model_device(model)
-    out = torch.empty((x.shape[0], num_leds, 3), dtype=torch.float32, device="cpu" if to_numpy else dev)
+    out = torch.empty((x.shape[0], num_leds, 3), dtype=torch.float32, device=device)
     with _frozen(model), torch.no_grad():
         for i in range(0, x.shape[0], batch):
             out[i:i + batch] = _decode_rgb(model, x[i:i + batch].to(dev), ad).permute(1, 2, 0)
-    _release(dev)
-    return out.numpy() if to_numpy else out
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ objective

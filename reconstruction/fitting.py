@@ -262,15 +262,17 @@ class _Problem:
     rig: object
     config: FitConfig
     pos: torch.Tensor  # (n, 3) float32, mm
-    # (n, L, 3) the lumitexels m; the loss's f(m) and the albedo quadratic's weights f'(m)^2 / (3 L) are derived
-    # where they are used (the Warp sums, reconstruction.fit_sums, from m itself), not stored: at 12,288 LEDs each
-    # is 147 kB a texel
-    target: torch.Tensor
+    # (n, L, 3) the lumitexels m, or (a lumitexel source, fit_ggx) a function of texel indices that gives theirs:
+    # part() asks it chunk by chunk. The loss's f(m) and the albedo quadratic's weights f'(m)^2 / (3 L) are
+    # derived where they are used (the Warp sums, reconstruction.fit_sums, from m itself), not stored: at 12,288
+    # LEDs each is 147 kB a texel
+    target: object
+    leds: int  # L, the upper LEDs
     photos: tuple  # _Photos of each camera that has measurements (primary first); empty: lumitexels only
     upper_rig: object  # the rig with its upper LEDs only: what the fit evaluates (the bottom ones light nothing here)
     ratio: torch.Tensor  # (2, L, 3): I[l, c] / I[l, 0] and I[l, c] / I[l, 1] (module docstring)
     frame: torch.Tensor  # (3, 3) rows N, X, Y of the sample plane
-    scale_m: float  # "mse": the targets' means (the albedo scalar's role)
+    scale_m: float  # "mse": the targets' mean (the albedo scalar's role); 1 for log1p, which needs none
 
     @property
     def n(self) -> int:
@@ -286,8 +288,32 @@ class _Problem:
         return _f(self.target, self.config.loss, self.scale_m)
 
     def part(self, idx: torch.Tensor) -> "_Problem":
-        """The same problem for the texels idx."""
-        return replace(self, pos=self.pos[idx], target=self.target[idx], photos=tuple(g.part(idx) for g in self.photos))
+        """The same problem for the texels idx, their lumitexels on the device (a source's decoded now)."""
+        target = self.target[idx] if torch.is_tensor(self.target) else _lumitexels_of(self.target, idx, self.leds)
+        return replace(self, pos=self.pos[idx], target=target, photos=tuple(g.part(idx) for g in self.photos))
+
+
+def _lumitexels_of(source, idx: torch.Tensor, leds: int) -> torch.Tensor:
+    """A lumitexel source's lumitexels of the texels idx, checked as fit_ggx checks an array."""
+    m = _tensor("lumitexels", source(idx), 3, idx.device)
+    _check_lumitexels(m, (idx.numel(), leds, 3))
+    return m
+
+
+def _target_mean(m, n: int, leds: int, chunk: int, dev) -> float:
+    """The target lumitexels' mean (the "mse" loss's scale): a source's `chunk` texels at a time."""
+    if torch.is_tensor(m):
+        return _mean(m)
+    chunks = torch.arange(n, device=dev).split(chunk)
+    return sum(_mean(_lumitexels_of(m, i, leds)) * i.numel() for i in chunks) / n
+
+
+def _check_lumitexels(m: torch.Tensor, shape: tuple) -> None:
+    if tuple(m.shape) != shape:
+        raise ValueError(f"lumitexels must have shape (N, L_upper, 3) = {shape} (upper LEDs only, network units), "
+                         f"got {tuple(m.shape)}")
+    if _negative(m):
+        raise ValueError(f"lumitexels must be >= 0 (decoded lumitexels are clamped at 0), got min {float(m.min()):g}")
 
 
 def _f(x: torch.Tensor, loss: str, scale: float) -> torch.Tensor:
@@ -379,15 +405,12 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
                          "the diffuse and specular responses from those channels (module docstring)")
     dev = torch.device(config.device)
     pos = _tensor("positions", positions, 2, dev)
-    m = _tensor("lumitexels", lumitexels, 3, dev)
     n = pos.shape[0]
     if n == 0:
         raise ValueError("positions is empty: nothing to fit")
-    if tuple(m.shape) != (n, L, 3):
-        raise ValueError(f"lumitexels must have shape (N, L_upper, 3) = ({n}, {L}, 3) for rig {rig.name!r} "
-                         f"(upper LEDs only, network units), got {tuple(m.shape)}")
-    if _negative(m):
-        raise ValueError(f"lumitexels must be >= 0 (decoded lumitexels are clamped at 0), got min {float(m.min()):g}")
+    m = lumitexels if callable(lumitexels) else _tensor("lumitexels", lumitexels, 3, dev)
+    if not callable(m):
+        _check_lumitexels(m, (n, L, 3))
     if (lines is None) != (line_weights is None):
         raise ValueError("lines and line_weights go together: give both or neither")
     if config.method == "neural":
@@ -406,13 +429,15 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
     if secondary is not None:
         photos.append(_photos("secondary photos", "their weights", config.secondary_camera, *secondary, n, L, config,
                               dev, total))
-    scale_m = max(_mean(m), 1e-12)
+    # log1p needs no scale; "mse" the targets' mean, a source's in the fit's chunks (_chunks)
+    scale_m = max(_target_mean(m, n, L, config.batch or max(1, AUTO_CHUNK_PAIRS // L), dev), 1e-12) \
+        if config.loss == "mse" else 1.0
 
     def T(a):
         return torch.as_tensor(a, dtype=torch.float32, device=dev)
 
     s = rig.sample
-    return _Problem(rig, config, pos, m, tuple(photos),
+    return _Problem(rig, config, pos, m, L, tuple(photos),
                     replace(rig, leds=rig.leds.subset(upper)),
                     T(np.stack([intensity / intensity[:, :1], intensity / intensity[:, 1:2]])),
                     T(np.stack([s.normal, s.x_axis, s.y_axis])), scale_m)
@@ -770,7 +795,7 @@ def _initial(prob: _Problem):
 # --- the methods -----------------------------------------------------------------------------------------
 def _chunks(prob: _Problem, size: int | None):
     """Contiguous texel index ranges of at most `size` (None: AUTO_CHUNK_PAIRS texel-LED pairs a range)."""
-    auto = max(1, AUTO_CHUNK_PAIRS // max(int(prob.target.shape[1]), 1))
+    auto = max(1, AUTO_CHUNK_PAIRS // max(prob.leds, 1))
     return torch.arange(prob.n, device=prob.pos.device).split(size or min(prob.n, auto))
 
 
@@ -1051,7 +1076,7 @@ def _tensor_system(prob: _Problem, x: torch.Tensor) -> tuple:
 
 def _residual_count(prob: _Problem) -> int:
     """The number of residuals of a texel (_residuals): 3 per LED and per photo."""
-    return 3 * int(prob.target.shape[1]) + sum(3 * int(g.W.shape[2]) for g in (prob.photos if prob.has_lines else ()))
+    return 3 * prob.leds + sum(3 * int(g.W.shape[2]) for g in (prob.photos if prob.has_lines else ()))
 
 
 def _colour_weights(rho_d: torch.Tensor, grid_shape, lam: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1378,7 +1403,9 @@ def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, second
     """Fit anisotropic GGX and the local frame per texel (module docstring) with config.method.
 
     positions (N, 3) mm, world; lumitexels (N, L_upper, 3) in network units (upper LEDs in rig order,
-    np.flatnonzero(~rig.is_bottom)), torch or numpy, >= 0; lines (N, K, 3) network units with
+    np.flatnonzero(~rig.is_bottom)), torch or numpy, >= 0, or a lumitexel source: a function of a tensor of
+    texel indices (on config.device) that returns their lumitexels (reconstruction.finetune.decoded_lumitexels:
+    decoded when a chunk of texels is fitted, so that a 1024^2 paper-rig sample's 150 GB never exist); lines (N, K, 3) network units with
     line_weights (K, L_upper, 3) (the upper-LED part of the line patterns' weights), optional together: any
     photos of config.camera under patterns (the linear lights, the learned patterns' + and - frames);
     secondary (photos (N, K2, 3), weights (K2, L_upper, 3)) the same for config.secondary_camera (optional;

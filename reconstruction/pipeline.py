@@ -102,7 +102,7 @@ def _reconstruct_into(out: ReconstructionFolder, session, rig, config: Reconstru
 
     from .alignment import align_views
     from .extraction import extract, texture_grid
-    from .finetune import decode_rgb, finetune
+    from .finetune import decoded_lumitexels, finetune
     from .fitting import fit_ggx, to_maps
     from .latents import check_patterns, decode
 
@@ -146,7 +146,7 @@ def _reconstruct_into(out: ReconstructionFolder, session, rig, config: Reconstru
     out.write_latent(latent, grid.shape, ft.passes)
 
     t = stage("fitting")
-    lumi = decode_rgb(model, ft.latent, to_numpy=False)
+    lumi = decoded_lumitexels(model, ft.latent)  # decoded chunk by chunk as the fit goes (issue #12)
     keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
     # the fit's measured photos (ours, issue #14): the kept lines and the 64 learned-pattern photos of the primary
     # view, and those of the secondary view: the learned patterns light many LEDs at once, so they sample narrow

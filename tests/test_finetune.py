@@ -329,3 +329,22 @@ def test_sources():
     assert FinetuneConfig(source="code", early_stopping=False).caps == (500, 50, 500)
     assert FinetuneConfig(iterations=(7, 8, 9)).caps == (7, 8, 9)
     assert FinetuneConfig().lrs == (0.02, 0.05, 0.02)
+
+
+def test_decoded_lumitexels_at_once_or_chunk_by_chunk(net):
+    """decoded_lumitexels: decode_rgb's lumitexels, as a tensor where they are small, else as a source that decodes
+    the texels it is asked for (the fit's chunks), the same numbers."""
+    import torch
+
+    from reconstruction.finetune import decode_rgb, decoded_lumitexels
+
+    c = net.config
+    lat = np.random.default_rng(4).normal(0, 0.5, (6, 3 * c.albedo_dim + c.shape_dim)).astype(np.float32)
+    whole = decode_rgb(net, lat)
+    at_once = decoded_lumitexels(net, lat)
+    assert torch.is_tensor(at_once) and np.array_equal(at_once.numpy(), whole)
+    source = decoded_lumitexels(net, lat, batch=4, max_bytes=0)
+    idx = torch.tensor([5, 0, 3])
+    np.testing.assert_array_equal(source(idx).numpy(), whole[[5, 0, 3]])
+    with pytest.raises(ValueError, match="latent72 must be finite"):
+        decoded_lumitexels(net, np.full_like(lat, np.nan))

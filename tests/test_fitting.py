@@ -163,6 +163,31 @@ def test_deterministic(mini, fitted):
         assert a.history == b.history
 
 
+@pytest.mark.parametrize("loss", ["log1p", "mse"])
+def test_a_lumitexel_source_fits_as_the_array_does(mini, fitted, loss):
+    """fit_ggx with a lumitexel source (a function of texel indices, asked chunk by chunk; what the pipeline passes,
+    reconstruction.finetune.decoded_lumitexels) gives the array's result to the bit, on a grid with the joint prior
+    and with chunks smaller than the problem; a source's bad lumitexels get the array's errors."""
+    truth, (m, lines, w), _ = fitted
+    asked = []
+
+    def source(idx):
+        asked.append(idx.numel())
+        return torch.as_tensor(m)[idx]
+
+    cfg = FitConfig(iterations=6, batch=4, loss=loss)
+    a, b = (fit_ggx(mini, truth["position"], x, lines=lines, line_weights=w, grid_shape=GRID, config=cfg)
+            for x in (m, source))
+    for k in ("normal", "tangent", "alpha_x", "alpha_y", "rho_d", "rho_s"):
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
+    assert a.history == b.history and max(asked) <= 4
+    for bad, message in ((lambda idx: torch.as_tensor(m)[idx][:, :-1], "L_upper"),
+                         (lambda idx: -torch.as_tensor(m)[idx], ">= 0"),
+                         (lambda idx: torch.full((idx.numel(), m.shape[1], 3), np.nan), "lumitexels contains NaN")):
+        with pytest.raises(ValueError, match=message):
+            fit_ggx(mini, truth["position"], bad, lines=lines, line_weights=w, config=cfg)
+
+
 def test_bad_inputs(mini, fitted):
     truth, (m, lines, w), _ = fitted
     pos = truth["position"]
