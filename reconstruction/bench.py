@@ -207,7 +207,7 @@ def _median_line_energy(model, latent, lines, W) -> float:
     from .finetune import FinetuneConfig, simulate_lines
 
     eps = FinetuneConfig().sqrt_eps
-    sim = simulate_lines(model, latent, W, batch=FinetuneConfig().batch)[:, 1:]
+    sim = simulate_lines(model, latent, W)[:, 1:]
     e = (np.sqrt(sim + eps) - np.sqrt(np.maximum(lines[:, 1:], 0) + eps)) ** 2
     return float(np.median(e.sum(axis=(1, 2))))
 

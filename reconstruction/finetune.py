@@ -293,10 +293,11 @@ def _sim_rgb(model, x72: torch.Tensor, w_lkc: torch.Tensor, ad: int) -> torch.Te
     return torch.bmm(_decode_rgb(model, x72, ad), w_lkc).permute(1, 2, 0)
 
 
-def simulate_lines(model, latent72, line_weights, batch: int | None = None) -> np.ndarray:
+def simulate_lines(model, latent72, line_weights, batch: int | None = 16384) -> np.ndarray:
     """M_sim (N, K, 3) float32 of RGB latents (N, 3 ad + sd) under line_weights (K, L_upper, 3): channel c
     decodes (a_c, s) and is weighted by W[..., c] (reference §4 pass 3). Runs on the model's device, in
-    eval mode, `batch` texels at a time (None: all)."""
+    eval mode, `batch` texels at a time (None: all; the default bounds the decoder's memory as decode_rgb's
+    does: 262,144 paper-rig texels at once asked an H100 for 36 GiB more, 2026-11-25)."""
     ad, sd, num_leds = _check_model(model)
     x = _as_float_tensor("latent72", latent72)
     if x.ndim != 2 or x.shape[1] != 3 * ad + sd:
