@@ -69,6 +69,22 @@ def _kernels(scalar):
         return vec3(f0, f1, f2), vec3(k0, k1, k2)
 
     @wp.func
+    def bases(val: wp.array3d(dtype=scalar), rho0: wp.array(dtype=vec3), rho1: wp.array(dtype=vec3), p: int,
+              l: int):
+        """(D, S) of texel p and LED l in its three channels, and the LED's ratios (rho0, rho1)."""
+        r0 = rho0[l]
+        r1 = rho1[l]
+        return val[0, p, l] * r0, val[1, p, l] * r1, r0, r1
+
+    @wp.func
+    def grey_derivatives(d_diffuse: wp.array3d(dtype=scalar), d_specular: wp.array3d(dtype=scalar), p: int, l: int):
+        """(dD0, dS0): the grey bases' derivatives along the 5 numbers, of texel p and LED l."""
+        return (vec5(d_diffuse[p, 0, l], d_diffuse[p, 1, l], d_diffuse[p, 2, l], d_diffuse[p, 3, l],
+                     d_diffuse[p, 4, l]),
+                vec5(d_specular[p, 0, l], d_specular[p, 1, l], d_specular[p, 2, l], d_specular[p, 3, l],
+                     d_specular[p, 4, l]))
+
+    @wp.func
     def rows(v: vec3):
         """The 5 x 3 matrix whose every row is v."""
         return wp.outer(vec5(scalar(1.0)), v)
@@ -101,10 +117,7 @@ def _kernels(scalar):
         d_sm = mat53()
         l = lane
         while l < n_leds:
-            r0 = rho0[l]
-            r1 = rho1[l]
-            D = val[0, p, l] * r0
-            S = val[1, p, l] * r1
+            D, S, r0, r1 = bases(val, rho0, rho1, p, l)
             m = target[p, l]
             w = weight(m, mode, scale, inv2)
             wD = wp.cw_mul(w, D)
@@ -112,10 +125,7 @@ def _kernels(scalar):
             sums += (wp.outer(e0, wp.cw_mul(wD, D)) + wp.outer(e1, wp.cw_mul(wD, m)) + wp.outer(e2, wp.cw_mul(wD, S))
                      + wp.outer(e3, wp.cw_mul(wS, S)) + wp.outer(e4, wp.cw_mul(wS, m)))
             if derivatives != 0:
-                dd0 = vec5(d_diffuse[p, 0, l], d_diffuse[p, 1, l], d_diffuse[p, 2, l], d_diffuse[p, 3, l],
-                           d_diffuse[p, 4, l])
-                ds0 = vec5(d_specular[p, 0, l], d_specular[p, 1, l], d_specular[p, 2, l], d_specular[p, 3, l],
-                           d_specular[p, 4, l])
+                dd0, ds0 = grey_derivatives(d_diffuse, d_specular, p, l)
                 w0 = wp.cw_mul(w, r0)
                 w1 = wp.cw_mul(w, r1)
                 d_dd += wp.outer(dd0, scalar(2.0) * wp.cw_mul(w0, D))
@@ -149,20 +159,14 @@ def _kernels(scalar):
         g = vec5()
         l = lane
         while l < n_leds:
-            r0 = rho0[l]
-            r1 = rho1[l]
-            D = val[0, p, l] * r0
-            S = val[1, p, l] * r1
+            D, S, r0, r1 = bases(val, rho0, rho1, p, l)
             mh = wp.cw_mul(a, D) + wp.cw_mul(b, S)
             f, k = transform3(mh, mode, scale)
             fm, km = transform3(target[p, l], mode, scale)
             r = (f - fm) * inv
             e += wp.dot(r, r)
             if derivatives != 0:
-                dd0 = vec5(d_diffuse[p, 0, l], d_diffuse[p, 1, l], d_diffuse[p, 2, l], d_diffuse[p, 3, l],
-                           d_diffuse[p, 4, l])
-                ds0 = vec5(d_specular[p, 0, l], d_specular[p, 1, l], d_specular[p, 2, l], d_specular[p, 3, l],
-                           d_specular[p, 4, l])
+                dd0, ds0 = grey_derivatives(d_diffuse, d_specular, p, l)
                 # the rows d m_hat / d q_j (j = 0..4) of the three channels, times f'(m_hat) / sqrt(3 L)
                 dm = (wp.cw_mul(da[p], rows(D)) + wp.outer(dd0, wp.cw_mul(a, r0)) + wp.cw_mul(db[p], rows(S))
                       + wp.outer(ds0, wp.cw_mul(b, r1)))
