@@ -192,7 +192,8 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
     check = same_work("finetune_batch100_vs_batched_lines_few_steps", *(simulate_lines(model, f.latent, W)
                                                                         for f in short),
                       rtol=FINETUNE_RTOL, atol=FINETUNE_ATOL)
-    full_a, full_b = simulate_lines(model, ft_ref.latent, W), simulate_lines(model, runs["paper_counts"].latent[:nb], W)
+    full_a = simulate_lines(model, ft_ref.latent, W)
+    full_b = simulate_lines(model, runs["paper_counts"].latent[:nb], W)
     full_diff = float(np.max(np.abs(full_a - full_b)) / max(float(np.max(np.abs(full_b))), 1e-30))
     t = time.perf_counter()
     lumi = exact if exact is not None else decoded_lumitexels(model, runs["default"].latent)

@@ -298,11 +298,8 @@ def simulate_lines(model, latent72, line_weights, batch: int | None = 16384) -> 
     decodes (a_c, s) and is weighted by W[..., c] (reference §4 pass 3). Runs on the model's device, in
     eval mode, `batch` texels at a time (None: all; the default bounds the decoder's memory as decode_rgb's
     does: 262,144 paper-rig texels at once asked an H100 for 36 GiB more, 2026-11-25)."""
-    ad, sd, num_leds = _check_model(model)
-    x = _as_float_tensor("latent72", latent72)
-    if x.ndim != 2 or x.shape[1] != 3 * ad + sd:
-        raise ValueError(f"latent72 must have shape (N, {3 * ad + sd}), got {tuple(x.shape)}")
-    _check_finite("latent72", x)
+    ad, _, num_leds = _check_model(model)
+    x = _checked_latent72(model, latent72)
     w = _check_weights(line_weights, num_leds)
     if batch is not None and not (_is_int(batch) and batch >= 1):
         raise ValueError(f"batch must be a positive integer or None, got {batch!r}")

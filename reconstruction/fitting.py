@@ -1405,12 +1405,13 @@ def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, second
     positions (N, 3) mm, world; lumitexels (N, L_upper, 3) in network units (upper LEDs in rig order,
     np.flatnonzero(~rig.is_bottom)), torch or numpy, >= 0, or a lumitexel source: a function of a tensor of
     texel indices (on config.device) that returns their lumitexels (reconstruction.finetune.decoded_lumitexels:
-    decoded when a chunk of texels is fitted, so that a 1024^2 paper-rig sample's 150 GB never exist); lines (N, K, 3) network units with
-    line_weights (K, L_upper, 3) (the upper-LED part of the line patterns' weights), optional together: any
-    photos of config.camera under patterns (the linear lights, the learned patterns' + and - frames);
-    secondary (photos (N, K2, 3), weights (K2, L_upper, 3)) the same for config.secondary_camera (optional;
-    each camera's photos weigh lambda_lines in the loss); grid_shape (R, C) with N = R C in row-major order, needed by method "neural". Raises ValueError on
-    NaN/Inf or mis-shaped input. Deterministic on the CPU: the same inputs and seed give the same result."""
+    decoded when a chunk of texels is fitted, so that a 1024^2 paper-rig sample's 150 GB never exist); lines
+    (N, K, 3) network units with line_weights (K, L_upper, 3) (the upper-LED part of the line patterns'
+    weights), optional together: any photos of config.camera under patterns (the linear lights, the learned
+    patterns' + and - frames); secondary (photos (N, K2, 3), weights (K2, L_upper, 3)) the same for
+    config.secondary_camera (optional; each camera's photos weigh lambda_lines in the loss); grid_shape (R, C)
+    with N = R C in row-major order, needed by method "neural". Raises ValueError on NaN/Inf or mis-shaped input
+    (a source's, when the fit asks for those texels). Deterministic on the CPU: the same inputs and seed give the same result."""
     return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary,
                       grid_shape=grid_shape, config=config)
 
