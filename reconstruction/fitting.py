@@ -1411,7 +1411,8 @@ def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, second
     patterns' + and - frames); secondary (photos (N, K2, 3), weights (K2, L_upper, 3)) the same for
     config.secondary_camera (optional; each camera's photos weigh lambda_lines in the loss); grid_shape (R, C)
     with N = R C in row-major order, needed by method "neural". Raises ValueError on NaN/Inf or mis-shaped input
-    (a source's, when the fit asks for those texels). Deterministic on the CPU: the same inputs and seed give the same result."""
+    (a source's, when the fit asks for those texels). Deterministic on the CPU: the same inputs and seed give the
+    same result."""
     return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary,
                       grid_shape=grid_shape, config=config)
 
