@@ -23,7 +23,9 @@ def test_bench_lumitexel_baseline_matches(capsys):
     rc, res, _ = _run(LUMI, capsys)
     assert rc == 0 and res["passed"]
     assert {c["check"] for c in res["checks"]} == {"warp_fused_vs_torch_eager",
-                                                   "warp_materialise_projected_vs_torch_eager"}
+                                                   "warp_materialise_projected_vs_torch_eager",
+                                                   "warp_materialise_fast_projected_tf32_vs_torch_eager",
+                                                   "projection_tf32_vs_float64"}
 
 
 def test_bench_lumitexel_drifted_baseline_fails(capsys, monkeypatch):
@@ -34,7 +36,7 @@ def test_bench_lumitexel_drifted_baseline_fails(capsys, monkeypatch):
     monkeypatch.setattr(twin.bench, "torch_lumitexel", lambda *a: plain(*a) * 0.99)
     rc, res, err = _run(LUMI, capsys)
     assert rc == 1 and not res["passed"]
-    assert "warp_fused_vs_torch_eager" in err
+    assert "warp_fused_vs_torch_eager" in err and "warp_materialise_fast_projected_tf32_vs_torch_eager" in err
 
 
 RECON = ["bench", "reconstruct", "--rig", "mini", "--texels", "8"]

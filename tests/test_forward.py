@@ -244,6 +244,62 @@ def test_measurements_fused_equals_materialised(mini, device):
         got = twin.measurements(mini, **pts, patterns=w, transparency=np.full(100, 0.3), device=device, method=method)
         assert got.shape == (100, 70, 3)
         assert np.abs(got - want).max() <= 1e-5 * np.abs(want).max(), method
+    # the fast path: fast-math lumitexels (within the float32 paths' tolerance) and a TF32 projection on CUDA
+    from twin.bench import LUMITEXEL_RTOL
+    from twin.optics.forward import TF32_PROJECTION_RTOL
+
+    got = twin.measurements(mini, **pts, patterns=w, transparency=np.full(100, 0.3), device=device,
+                            method="materialise", fast=True, tensor_cores=True)
+    assert np.all(np.abs(got - want) <= (LUMITEXEL_RTOL + TF32_PROJECTION_RTOL) * np.abs(want) + 1e-6 * np.abs(want).max())
+    with pytest.raises(ValueError, match="materialise"):
+        twin.measurements(mini, **pts, patterns=w, device=device, fast=True)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_rows_kernels_match_the_pointwise_kernel(device):
+    """lumitexel_rows_kernel and its fast-math twin (thread (p, j) takes LEDs j, j + 512, ...) against
+    lumitexel_kernel (a thread per point and LED), on 1,100 LEDs: every LED of every point, the last stride
+    partial. Tolerance: the float32 paths' (twin.bench.LUMITEXEL_RTOL of |m| + LUMITEXEL_ATOL of max |m|)."""
+    from twin.bench import LUMITEXEL_ATOL, LUMITEXEL_RTOL
+    from twin.optics import lumitexel as K
+    from twin.optics.inputs import CONVENTIONS, _device_inputs, _led_inputs, make_options
+
+    paper = twin.load_rig("paper")
+    rig = replace(paper, leds=paper.leds.subset(np.flatnonzero(~paper.is_bottom)[:1100]))
+    pts = _points(16)
+    arrays, wpts = _device_inputs(rig, device, "float32", None, *pts.values(), np.zeros(16))
+    o = make_options(rig, arrays, "physical", "separable", "schlick", 1.5, visibility=False)
+    leds = _led_inputs(arrays, CONVENTIONS["physical"])
+    want = wp.zeros((16, rig.num_leds), dtype=wp.vec3f, device=device)
+    wp.launch(K.lumitexel_kernel, dim=want.shape, inputs=[*wpts, *leds, o], outputs=[want], device=device)
+    want = want.numpy().astype(np.float64)
+    assert np.count_nonzero(want[:, -1]) > 0  # the last LED is lit for some point: the partial stride counts
+    for kernel in (K.lumitexel_rows_kernel, K.lumitexel_rows_kernel_fast):
+        got = wp.full((16, rig.num_leds), wp.vec3f(-1.0, -1.0, -1.0), dtype=wp.vec3f, device=device)
+        wp.launch(kernel, dim=(16, K.LED_STRIDE), inputs=[*wpts, *leds, o], outputs=[got], device=device)
+        got = got.numpy()
+        assert np.all(np.abs(got - want) <= LUMITEXEL_RTOL * np.abs(want) + LUMITEXEL_ATOL * np.abs(want).max()), kernel.key
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_project_block_diagonal(device):
+    """forward.project (one GEMM against the block-diagonal matrix of the channels' patterns) against float64
+    einsum: float32 within 1e-5 of the largest value; tensor_cores=True (TF32 on CUDA) within
+    TF32_PROJECTION_RTOL of each value (drives >= 0)."""
+    torch = pytest.importorskip("torch")
+    from twin.optics.forward import TF32_PROJECTION_RTOL, project
+
+    g = torch.Generator().manual_seed(3)
+    m = torch.rand(40, 700, 3, generator=g) ** 4 * 1e3  # a peaked spread of radiances
+    w = torch.rand(9, 700, 3, generator=g)
+    want = torch.einsum("plc,klc->pkc", m.double(), w.double())
+    dev = "cuda" if device.startswith("cuda") else "cpu"
+    flag = torch.backends.cuda.matmul.allow_tf32
+    for tc, ok in ((False, lambda d: d.abs().max() <= 1e-5 * want.abs().max()),
+                   (True, lambda d: bool((d.abs() <= TF32_PROJECTION_RTOL * want).all()))):
+        got = project(m.to(dev), w.to(dev), tc).cpu().double()
+        assert got.shape == (40, 9, 3) and ok(got - want), tc
+    assert torch.backends.cuda.matmul.allow_tf32 == flag  # project leaves torch's TF32 setting as it was
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -1,8 +1,10 @@
 """`hemicube bench ...`: throughput figures as JSON, each with a same-run baseline.
 
 bench lumitexel: LED-BRDF evaluations per second (points x LEDs / second) of
-  * the Warp materialising kernel (lumitexels stored), alone and followed by torch's projection onto the
-    patterns (twin.measurements' method="materialise"; cuBLAS on CUDA),
+  * the Warp materialising kernels (lumitexels stored; lumitexel.materialise: the rows kernel on CUDA, its
+    fast-math twin, and the one-thread-per-evaluation kernel the rows kernel replaced there, for the record),
+    alone and followed by the projection onto the patterns (twin.measurements' method="materialise":
+    forward.project, cuBLAS on CUDA; in float32, and with fast=True and tensor_cores=True, TF32),
   * the Warp fused kernel (64-pattern measurements, lumitexels never stored),
   * the baseline: a plain batched-torch version of the same formula (Eq. 1 with the same GGX,
     Lambertian LEDs, no visibility; then an einsum with the patterns), eager and torch.compile'd.
@@ -189,6 +191,7 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     from twin.optics import lumitexel as K
     from twin.optics.emitter import PROFILE_COSINE, PROFILE_MODES
     from twin.optics.inputs import CONVENTIONS, _device_inputs, _led_inputs, make_options
+    from twin.optics.forward import TF32_PROJECTION_RTOL, project
     from twin.optics.fused import fused_measurements
 
     from dataclasses import replace
@@ -211,7 +214,13 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
     m = wp.zeros((P, L), dtype=wp.vec3f, device=device)
     out = wp.zeros((P, patterns), dtype=wp.vec3f, device=device)
 
-    def run_mat():
+    def run_mat(fast=False):
+        K.materialise(wpts, leds_in, o, m, device, fast)
+
+    def run_mat_fast():
+        run_mat(True)
+
+    def run_pointwise():
         wp.launch(K.lumitexel_kernel, dim=(P, L), inputs=[*wpts, *leds_in, o], outputs=[m], device=device)
 
     def run_fused():
@@ -219,19 +228,26 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
         fused_measurements(wpts, leds_in, o, w, out, device)
 
     sync = lambda: wp.synchronize_device(device)  # noqa: E731
+    t_point = _time(run_pointwise, sync, repeats)
     t_mat = _time(run_mat, sync, repeats)
+    t_mat_fast = _time(run_mat_fast, sync, repeats)
     t_fused = _time(run_fused, sync, repeats)
 
     tdev = torch.device("cuda" if str(device).startswith("cuda") else "cpu")
     wt = torch.as_tensor(w, device=tdev)
 
-    def run_mat_projected():
-        """twin.measurements(method="materialise") on CUDA: the lumitexels, then torch's (cuBLAS) projection"""
-        run_mat()
+    def run_mat_projected(fast=False):
+        """twin.measurements(method="materialise", fast=fast, tensor_cores=fast): the lumitexels, then
+        forward.project (cuBLAS on CUDA)"""
+        run_mat(fast)
         sync()  # Warp's stream is not torch's
-        return torch.einsum("klc,plc->pkc", wt, wp.to_torch(m))
+        return project(wp.to_torch(m), wt, fast)
+
+    def run_mat_tf32():
+        return run_mat_projected(True)
 
     t_mat_proj = _time(run_mat_projected, sync, repeats)
+    t_mat_tf32 = _time(run_mat_tf32, sync, repeats)  # on the CPU tensor_cores changes nothing
     T = {k: torch.as_tensor(v, dtype=torch.float32, device=tdev) for k, v in pts.items()}
 
     def led(a):
@@ -259,9 +275,14 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
         "leds": L, "points": P, "patterns": patterns, "evaluations": P * L,
         "warp_version": wp.__version__, "torch_version": torch.__version__,
         "warp_materialise_evals_per_s": P * L / t_mat, "warp_materialise_s": t_mat,
+        "warp_materialise_kernel": "lumitexel_rows_kernel" if tdev.type == "cuda" else "lumitexel_kernel",
+        "warp_materialise_fast_evals_per_s": P * L / t_mat_fast, "warp_materialise_fast_s": t_mat_fast,
+        "warp_pointwise_evals_per_s": P * L / t_point, "warp_pointwise_s": t_point,
         "warp_fused_evals_per_s": P * L / t_fused, "warp_fused_s": t_fused,
         "warp_materialise_projected_evals_per_s": P * L / t_mat_proj, "warp_materialise_projected_s": t_mat_proj,
     }
+    result.update(warp_materialise_fast_projected_tf32_evals_per_s=P * L / t_mat_tf32,
+                  warp_materialise_fast_projected_tf32_s=t_mat_tf32)
     tol = dict(rtol=LUMITEXEL_RTOL, atol=LUMITEXEL_ATOL)
     with torch.no_grad():
         run_eager = torch_fused(torch_lumitexel)
@@ -272,6 +293,14 @@ def bench_lumitexel(rig_name="paper", device="cpu", leds=None, points=4096, patt
         projected = run_mat_projected().cpu().numpy()
         checks = [same_work("warp_fused_vs_torch_eager", out.numpy(), ref, **tol),
                   same_work("warp_materialise_projected_vs_torch_eager", projected, ref, **tol)]
+        fast = run_mat_tf32().cpu().numpy()
+        checks.append(same_work("warp_materialise_fast_projected_tf32_vs_torch_eager", fast, ref,
+                                rtol=LUMITEXEL_RTOL + TF32_PROJECTION_RTOL, atol=LUMITEXEL_ATOL))
+        # the projection alone, against float64 on the same lumitexels, on the first points (float64 copies of
+        # all of them would be 19 GB at 65,536 x 12,288)
+        n = min(P, 4096)
+        exact = torch.einsum("plc,klc->pkc", wp.to_torch(m)[:n].double(), wt.double()).cpu().numpy()
+        checks.append(same_work("projection_tf32_vs_float64", fast[:n], exact, rtol=TF32_PROJECTION_RTOL))
         if compile_torch:
             run_comp = torch_fused(torch.compile(torch_lumitexel, dynamic=False))
             t_comp = _time(run_comp, tsync, max(1, repeats // 2))

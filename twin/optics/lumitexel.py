@@ -13,7 +13,9 @@ float32 / float64 (float64 for gradient checks) and is defined at import time.
 
 Kernels:
   * point_frames_kernel (P,) each point's local frame and view direction, once
-  * lumitexel_kernel   (P, L)  materialises m[p, l]           (training data; differentiable)
+  * lumitexel_kernel   (P, L)  materialises m[p, l]           (differentiable: the torch bridge's tape)
+  * lumitexel_rows_kernel (P, LED_STRIDE) the same m, forward only: `materialise` on CUDA; its twin
+    lumitexel_rows_kernel_fast compiled with fast math (materialise(fast=True))
   * project_kernel     (P, K)  B[p, k] = sum_l W[k, l] m[p, l] (differentiable w.r.t. m and W)
   * fused_loop_kernel  (P,)    B without storing m: portable loop, used on CPU
   * fused_tile_kernel  blocks  B without storing m: tiles in shared memory + tile_matmul, used on CUDA
@@ -139,8 +141,37 @@ def _lumitexel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.a
                              lpos[l], lnrm[l], lu[l], lint[l], prof, l, lbot[l], o)
 
 
+LED_STRIDE = wp.constant(512)  # threads per point in lumitexel_rows_kernel (H100: 256 -> 512 is 12.7 -> 10.4 ms)
+
+
+def _lumitexel_rows(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any),
+                    rho_d: wp.array(dtype=Any), rho_s: wp.array(dtype=Any), ax: wp.array(dtype=Any),
+                    ay: wp.array(dtype=Any), beta: wp.array(dtype=Any),
+                    lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
+                    lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
+                    o: Options, out: wp.array2d(dtype=Any)):
+    """_lumitexel with thread (p, j) evaluating LEDs j, j + LED_STRIDE, ... of point p. Why (issue #12 item 2,
+    Nsight Compute on an H100, docs/performance.md): one thread per (p, l) spent ~300 of its ~650 instructions
+    per evaluation on array indexing and loads, 24 floats of them the point's, the same for every LED; here
+    they are loaded once per thread, and a warp's LEDs stay consecutive, so the stores stay coalesced."""
+    p, j = wp.tid()
+    x, f, w, rd, rs, a, b, be = pos[p], frames[p], wo_l[p], rho_d[p], rho_s[p], ax[p], ay[p], beta[p]
+    for l in range(j, lpos.shape[0], LED_STRIDE):
+        out[p, l] = led_response(x, f, w, rd, rs, a, b, be, lpos[l], lnrm[l], lu[l], lint[l], prof, l, lbot[l], o)
+
+
 point_frames_kernel = wp.kernel(_point_frames)
 lumitexel_kernel = wp.kernel(_lumitexel)
+# Forward only: a dynamic loop has no adjoint. The fast twin is compiled with fast math: approximate division
+# and square root (<= 2 ulp) and denormals flushed, which no lumitexel of alpha >= 0.006 comes near. Against
+# lumitexel_kernel on an H100, over 65,536 random points x 12,288 LEDs: largest difference 7.9e-5 of |m| + 1e-6
+# max |m|, 99.999th percentile 9.7e-6 (docs/performance.md): within the float32 paths' same-work tolerance
+# (twin.bench.LUMITEXEL_RTOL), far below the sensor's ~1% noise.
+lumitexel_rows_kernel = wp.kernel(enable_backward=False, module="unique")(_lumitexel_rows)
+lumitexel_rows_kernel_fast = wp.kernel(enable_backward=False, module="unique",
+                                       module_options={"fast_math": True})(_lumitexel_rows)
+
+
 _EXACT = {"fuse_fp": False, "fast_math": False}
 point_frames_kernel_exact = wp.kernel(module="unique", module_options=_EXACT)(_point_frames)
 lumitexel_kernel_exact = wp.kernel(module="unique", module_options=_EXACT)(_lumitexel)
@@ -172,6 +203,18 @@ def fused_loop_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_
         if wp.length_sq(m) > ax[p] * type(ax[p])(0.0):
             for k in range(w.shape[0]):
                 out[p, k] = out[p, k] + wp.cw_mul(w[k, l], m)
+
+
+def materialise(point_args: list, led_args: list, o: Options, out: wp.array, device, fast: bool = False) -> None:
+    """out[p, l] = m[p, l] for the points of point_inputs and the LEDs of inputs._led_inputs, without a tape:
+    lumitexel_rows_kernel on CUDA, lumitexel_kernel on the CPU (one thread gains nothing from the rows, and its
+    results stay the ones the torch bridge gives to the bit); fast=True: lumitexel_rows_kernel_fast on both."""
+    cuda = wp.get_device(device).is_cuda
+    if fast or cuda:
+        wp.launch(lumitexel_rows_kernel_fast if fast else lumitexel_rows_kernel, dim=(out.shape[0], LED_STRIDE),
+                  inputs=[*point_args, *led_args, o], outputs=[out], device=device, block_dim=128 if cuda else None)
+    else:
+        wp.launch(lumitexel_kernel, dim=out.shape, inputs=[*point_args, *led_args, o], outputs=[out], device=device)
 
 
 def point_inputs(pos, nrm, tan, rho_d, rho_s, ax, ay, beta, cam, device, exact: bool = False) -> list:
