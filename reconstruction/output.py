@@ -12,10 +12,17 @@ reads it here; no other module knows its file names.
                              tangent/transparency textures, αx ≥ αy)
 The pipeline assembles it in a temporary folder that replaces OUT only when complete
 (twin.atomic.atomic_folder): a failed or killed run leaves the previous folder, or none.
+
+Finished stages are kept until then in a stage folder beside OUT (`stages_folder`: .OUT.stages/, the same files
+as above plus stages.json), so that a killed or failed run resumes after its last finished stage (alignment,
+extraction, fine-tuning): stages.json holds, per stage, the key of everything it was computed from (the capture's
+content, the rig, the settings, the network) and the sha256 of its files; a stage is reused only when both match.
+Its files are hard-linked into the finished folder, and the stage folder is removed once OUT is complete.
 """
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +37,14 @@ MEASUREMENTS = "measurements.npz"
 LATENT = "latent.exr"
 LATENT_PASSES = "latent_passes.npz"
 MAPS = "maps"
+STAGES = "stages.json"
+STAGE_FILES = {"alignment": (ALIGNMENT,), "extraction": (MEASUREMENTS,), "finetune": (LATENT, LATENT_PASSES)}
+
+
+def stages_folder(out) -> Path:
+    """Where `reconstruct` keeps the finished stages of OUT until OUT is complete (module docstring)."""
+    out = Path(out)
+    return out.with_name(f".{out.name}.stages")
 
 
 class ReconstructionFolder:
@@ -87,6 +102,64 @@ class ReconstructionFolder:
         if doc.get("format") != FORMAT_NAME or doc.get("version") != FORMAT_VERSION:
             raise ValueError(f"{path}: not a {FORMAT_NAME} v{FORMAT_VERSION} summary")
         return doc
+
+    # --- stages (module docstring) ---------------------------------------------------------------------
+    def _stages(self) -> dict:
+        try:
+            return json.loads((self.dir / STAGES).read_text())
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+            return {}
+
+    def finished_stage(self, stage: str, key: str) -> dict | None:
+        """The record (its `extra`) of `stage` when it was finished with `key` and its files still verify; else
+        None."""
+        rec = self._stages().get(stage)
+        if not isinstance(rec, dict) or rec.get("key") != key:
+            return None
+        files = rec.get("files", {})
+        if sorted(files) != sorted(STAGE_FILES[stage]):
+            return None
+        if any(not (self.dir / f).is_file() or file_sha256(self.dir / f) != h for f, h in files.items()):
+            return None
+        return rec.get("extra", {})
+
+    def record_stage(self, stage: str, key: str, extra: dict) -> None:
+        """Mark `stage` finished with `key` (its files written before), with the sha256 of its files."""
+        doc = self._stages()
+        doc[stage] = {"key": key, "files": {f: file_sha256(self.dir / f) for f in STAGE_FILES[stage]}, "extra": extra}
+        write_bytes_atomic(self.dir / STAGES, json.dumps(doc, indent=1).encode())
+
+    def link_stage(self, stage: str, dest: "ReconstructionFolder") -> None:
+        """Hard-link the stage's files into `dest` (copied where the file system has no hard links)."""
+        import shutil
+
+        for f in STAGE_FILES[stage]:
+            try:
+                os.link(self.dir / f, dest.dir / f)
+            except OSError:
+                shutil.copy2(self.dir / f, dest.dir / f)
+
+    def alignment(self, info: dict):
+        """The alignment written by write_alignment, with its `info` (kept in the stage record)."""
+        from .alignment import Alignment
+
+        with np.load(self.dir / ALIGNMENT, allow_pickle=False) as z:
+            return Alignment(z["map"], z["homography"], info)
+
+    def measurements(self):
+        """The measurements written by write_measurements."""
+        from .extraction import Measurements, TextureGrid
+
+        with np.load(self.dir / MEASUREMENTS, allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+        res, size = a.pop("grid")
+        a.pop("learned")  # kept for readers of the file; Measurements derives it from the photos
+        return Measurements(grid=TextureGrid(int(res), float(size)), **a)
+
+    def latent_passes(self) -> dict:
+        """pass0 ... pass3 -> (N, 72) latents, as write_latent wrote them."""
+        with np.load(self.dir / LATENT_PASSES, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
 
     def maps(self):
         from twin.materials.samples import read_maps

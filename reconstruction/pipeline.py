@@ -10,10 +10,13 @@ to `reconstruction.validation`).
     4. fine-tuning     three passes against the line photos, one held out (reconstruction.finetune; §7.1)
     5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.fitting; §7.2)
 
-The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone).
+The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone). Stages 1, 2
+and 4 are kept as they finish, so a killed or failed run, started again with the same capture and settings,
+resumes after the last one finished (reconstruction.output's stage folder).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -24,7 +27,7 @@ import numpy as np
 from .alignment import AlignConfig
 from .finetune import FinetuneConfig
 from .fitting import FitConfig
-from .output import ReconstructionFolder
+from .output import ReconstructionFolder, stages_folder
 
 @dataclass(frozen=True)
 class ReconstructConfig:
@@ -87,17 +90,52 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
     from twin.atomic import atomic_folder
     from twin.capture.session import CaptureSession
 
+    import fcntl
+    import os
+    import re
+    import shutil
+
     session, out = CaptureSession.open(capture), Path(output)
     if rig is None:
         rig = session.rig()
-    with atomic_folder(out, overwrite=True) as tmp:  # a failed run leaves the previous folder (or none)
-        recon = _reconstruct_into(ReconstructionFolder(tmp), session, rig, config, progress)
+    stages = ReconstructionFolder(stages_folder(out))
+    stages.dir.mkdir(parents=True, exist_ok=True)
+    lock = os.open(stages.dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"{out} is being reconstructed by another process; wait for it or choose another "
+                             "folder") from None
+        # a killed run leaves its half-built folder (twin.atomic: .OUT.XXXXXXXX); the lock says it is nobody's now
+        for p in out.parent.glob(f".{out.name}.*"):
+            if re.fullmatch(rf"\.{re.escape(out.name)}\.[A-Za-z0-9_]{{8}}", p.name) and p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+        with atomic_folder(out, overwrite=True) as tmp:  # a failed run leaves the previous folder (or none)
+            recon = _reconstruct_into(ReconstructionFolder(tmp), stages, session, rig, config, progress)
+        shutil.rmtree(stages.dir, ignore_errors=True)  # OUT holds its files now (hard links)
+    finally:
+        os.close(lock)
     recon.directory = out
     return recon
 
 
-def _reconstruct_into(out: ReconstructionFolder, session, rig, config: ReconstructConfig,
-                      progress: bool) -> Reconstruction:
+def _key(*parts) -> str:
+    """A stage's key: sha256 of what it is computed from (the previous stage's key first)."""
+    return hashlib.sha256(json.dumps(_jsonable(parts), sort_keys=True).encode()).hexdigest()
+
+
+def _network_digest(model) -> str:
+    """sha256 of the network's parameters and buffers, in state_dict order."""
+    h = hashlib.sha256()
+    for name, t in model.state_dict().items():
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, session, rig,
+                      config: ReconstructConfig, progress: bool) -> Reconstruction:
     from twin.capture.plan import indices_of
 
     from .alignment import align_views
@@ -107,46 +145,80 @@ def _reconstruct_into(out: ReconstructionFolder, session, rig, config: Reconstru
     from .latents import check_patterns, decode
 
     timings: dict[str, float] = {}
+    resumed: list[str] = []
 
     def stage(name):
         if progress:
             print(f"[reconstruct] {name} ...", flush=True)
         return time.perf_counter()
 
-    t = stage("alignment")
-    uniform = indices_of(session).uniform
-    alignment = align_views(session.photo(uniform, 0), session.photo(uniform, 1), rig,
-                            replace(config.align, device=config.device))
-    timings["alignment_s"] = time.perf_counter() - t
-    out.write_alignment(alignment)
+    def finished(name, key):
+        """The stage's record when a run before this one finished it with this key (then reused), else None."""
+        rec = stages.finished_stage(name, key)
+        if rec is not None:
+            resumed.append(name)
+            timings[f"{name}_s"] = rec["seconds"]
+            if progress:
+                print(f"[reconstruct] {name}: resumed from {stages.dir}", flush=True)
+        return rec
 
-    t = stage("extraction")
-    grid = texture_grid(session, rig, config.resolution, config.size_mm)
-    meas = extract(session, rig, grid, alignment, anti_alias=config.anti_alias, progress=progress)
-    if not meas.valid.all():  # the grid lies inside the sample, which both views see whole
-        raise ValueError(f"{session.dir}: {int((~meas.valid).sum())} of the {grid.resolution}^2 texels are not seen "
-                         "by both cameras (or their photos are not finite); choose a smaller --size-mm")
-    timings["extraction_s"] = time.perf_counter() - t
-    out.write_measurements(meas)
+    def done(name, key, t, **extra):
+        timings[f"{name}_s"] = time.perf_counter() - t
+        stages.record_stage(name, key, {"seconds": timings[f"{name}_s"], **_jsonable(extra)})
+
+    key = _key(session.content_digest(), rig.digest(), config.device, asdict(config.align))
+    rec = finished("alignment", key)
+    if rec is not None:
+        alignment = stages.alignment(rec["info"])
+    else:
+        t = stage("alignment")
+        uniform = indices_of(session).uniform
+        alignment = align_views(session.photo(uniform, 0), session.photo(uniform, 1), rig,
+                                replace(config.align, device=config.device))
+        stages.write_alignment(alignment)
+        done("alignment", key, t, info=alignment.info)
+    stages.link_stage("alignment", out)
+
+    key = _key(key, config.resolution, config.size_mm, config.anti_alias)
+    if finished("extraction", key) is not None:
+        meas = stages.measurements()
+        grid = meas.grid
+    else:
+        t = stage("extraction")
+        grid = texture_grid(session, rig, config.resolution, config.size_mm)
+        meas = extract(session, rig, grid, alignment, anti_alias=config.anti_alias, progress=progress)
+        if not meas.valid.all():  # the grid lies inside the sample, which both views see whole
+            raise ValueError(f"{session.dir}: {int((~meas.valid).sum())} of the {grid.resolution}^2 texels are not "
+                             "seen by both cameras (or their photos are not finite); choose a smaller --size-mm")
+        stages.write_measurements(meas)
+        done("extraction", key, t)
+    stages.link_stage("extraction", out)
 
     t = stage("decode")
     model = load_network(config.network, rig, config.device)
     check_patterns(model, session, rig)
-    z56 = decode(model, meas.learned, device=config.device)
-    timings["decode_s"] = time.perf_counter() - t
-
     hold = choose_holdout(meas.lines, meas.valid) if config.holdout_line is None else int(config.holdout_line)
     if not 0 <= hold < meas.lines.shape[1]:
         raise ValueError(f"holdout_line must lie in [0, {meas.lines.shape[1]}), got {hold}")
-    t = stage(f"fine-tuning (line {hold} held out)")
     ft_cfg = _with_holdout(config.finetune, hold, config.device)
-    ft = finetune(model, z56, meas.lines, meas.line_weights, ft_cfg)
-    timings["finetune_s"] = time.perf_counter() - t
-    latent = ft.latent
-    out.write_latent(latent, grid.shape, ft.passes)
+    key = _key(key, _network_digest(model), asdict(ft_cfg))
+    rec = finished("finetune", key)
+    if rec is None:  # the decoded latents are fine-tuning's start; a resumed run needs only the network
+        z56 = decode(model, meas.learned, device=config.device)
+    timings["decode_s"] = time.perf_counter() - t
+    if rec is not None:
+        latent = stages.latent_passes()["pass3"]  # FinetuneResult.latent is the pass-3 latent
+        ft_info = rec["finetune"]
+    else:
+        t = stage(f"fine-tuning (line {hold} held out)")
+        ft = finetune(model, z56, meas.lines, meas.line_weights, ft_cfg)
+        latent, ft_info = ft.latent, {"iterations": ft.iterations, "seconds": ft.seconds}
+        stages.write_latent(latent, grid.shape, ft.passes)
+        done("finetune", key, t, finetune=ft_info)
+    stages.link_stage("finetune", out)
 
     t = stage("fitting")
-    lumi = decoded_lumitexels(model, ft.latent)  # decoded chunk by chunk as the fit goes (issue #12)
+    lumi = decoded_lumitexels(model, latent)  # decoded chunk by chunk as the fit goes (issue #12)
     keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
     # the fit's measured photos (ours, issue #14): the kept lines and the 64 learned-pattern photos of the primary
     # view, and those of the secondary view: the learned patterns light many LEDs at once, so they sample narrow
@@ -166,7 +238,7 @@ def _reconstruct_into(out: ReconstructionFolder, session, rig, config: Reconstru
                "rig": rig.name, "rig_digest": rig.digest(), "config": _jsonable(asdict(config)),
                "grid": {"resolution": grid.resolution, "size_mm": grid.size_mm},
                "texels": int(meas.valid.size), "holdout_line": hold, "timings_s": timings,
-               "finetune": {"iterations": ft.iterations, "seconds": ft.seconds},
+               "finetune": _jsonable(ft_info), "resumed": resumed,
                "alignment": _jsonable(alignment.info)}
     out.write_summary(summary)
     return Reconstruction(out.dir, meas, latent, maps, hold, timings, alignment, model)

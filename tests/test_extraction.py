@@ -142,8 +142,11 @@ def test_bad_captures_are_refused(extracted, mini, tmp_path):
     out = tmp_path / "recon"
     with pytest.raises(CaptureError, match="img00070_cam00.exr: listed in the manifest but missing"):
         reconstruct(broken, out, progress=False)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken"]  # no partial or temporary folder
+    # no partial or temporary folder; only the finished stages, kept for a resumed run (reconstruction.output)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".recon.stages", "broken"]
     import json
+
+    assert sorted(json.loads((tmp_path / ".recon.stages" / "stages.json").read_text())) == ["alignment"]
 
     from twin.atomic import file_sha256
     from twin.materials.exr import read_rgb_exr, write_rgb_exr

@@ -116,6 +116,12 @@ class CaptureSession:
         """Photo index -> the name of the pattern it was taken under (the manifest's plan), for one camera."""
         return {p["index"]: p["pattern"] for p in self.header.get("plan", []) if p["camera_index"] == camera_index}
 
+    def content_digest(self) -> str:
+        """sha256 of the manifest's header and its files' checksums: two folders with one digest hold the same
+        capture, byte for byte (a reconstruction's stages are keyed on it, reconstruction.output)."""
+        doc = json.dumps({"header": self.header, "files": self.files}, sort_keys=True, default=str)
+        return hashlib.sha256(doc.encode()).hexdigest()
+
     def verified(self, rel: str) -> bool:
         p = self.dir / rel
         return rel in self.files and p.is_file() and file_sha256(p) == self.files[rel]

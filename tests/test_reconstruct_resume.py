@@ -1,0 +1,111 @@
+"""A reconstruction killed after fine-tuning resumes from its finished stages (reconstruction.output's stage folder).
+
+One uninterrupted run (A) and one whose process is SIGKILLed while it fits (B, the real CLI in its own process; its
+fit is made to wait so that the kill lands there), then B run again: it must reuse alignment, extraction and
+fine-tuning (their files verified, not recomputed) and give A's bytes. Then the stage keys: a tampered stage file
+is recomputed, another setting starts over. Mini rig, the session's `ramps` capture, a 12^2 grid (seconds a stage).
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from reconstruction.output import ReconstructionFolder, stages_folder
+from reconstruction.pipeline import ReconstructConfig, reconstruct
+
+CONFIG = ReconstructConfig(resolution=12)
+# the CLI, with the fit made to wait (so a kill lands in it, after fine-tuning was kept)
+WAITING_FIT = ("import sys, time; import reconstruction.fitting as f; "
+               "f.fit_ggx = lambda *a, **k: time.sleep(3600); "
+               "from hemicube.cli import main; sys.exit(main(sys.argv[1:]))")
+
+
+def _stage_names(folder: Path) -> set:
+    try:
+        return set(json.loads((folder / "stages.json").read_text()))
+    except (OSError, ValueError):
+        return set()
+
+
+@pytest.fixture(scope="module")
+def run_a(validate_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("resume") / "A"
+    reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    return out
+
+
+def _files(folder: Path) -> dict:
+    return ReconstructionFolder(folder).summary()["files"]
+
+
+def test_killed_while_fitting_resumes_after_fine_tuning(validate_dir, run_a, tmp_path):
+    out = tmp_path / "B"
+    stages = stages_folder(out)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-c", WAITING_FIT, "reconstruct", str(validate_dir / "capture"), "-o",
+                             str(out), "--resolution", "12", "--no-progress"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and "finetune" not in _stage_names(stages) and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert _stage_names(stages) == {"alignment", "extraction", "finetune"}, "the kill must land after fine-tuning"
+    assert not out.exists()  # nothing half-built where the result goes
+    leftovers = [p for p in out.parent.iterdir() if p.name.startswith(".B.") and p != stages]
+    assert leftovers, "the killed run's half-built folder is there to be cleaned"
+    mtimes = {p.name: p.stat().st_mtime_ns for p in stages.iterdir()}
+    kept = json.loads((stages / "stages.json").read_text())
+
+    recon = reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    summary = ReconstructionFolder(out).summary()
+    assert summary["resumed"] == ["alignment", "extraction", "finetune"]
+    assert ReconstructionFolder(out).verify() == []
+    assert not stages.exists() and sorted(p.name for p in out.parent.iterdir()) == ["B"]  # stages and leftovers gone
+    # the stage files were verified and reused, not rewritten: the finished folder holds those very files
+    assert {f: (out / f).stat().st_mtime_ns for f in mtimes if (out / f).exists()} == \
+        {f: t for f, t in mtimes.items() if (out / f).exists()}
+    a, b = _files(run_a), _files(out)
+    assert a == b and len(a) > 4  # same bytes as the uninterrupted run: alignment, measurements, latents, maps
+    # a resumed stage reports the seconds it took in the run that finished it
+    assert recon.timings["finetune_s"] == kept["finetune"]["extra"]["seconds"] > 0
+    assert summary["timings_s"]["alignment_s"] == kept["alignment"]["extra"]["seconds"]
+
+
+def test_a_tampered_stage_is_recomputed_and_other_settings_start_over(validate_dir, run_a, tmp_path, monkeypatch):
+    import reconstruction.fitting as fitting
+
+    out = tmp_path / "C"
+    stages = stages_folder(out)
+
+    def stop(*a, **k):
+        raise RuntimeError("stopped in the fit")
+
+    monkeypatch.setattr(fitting, "fit_ggx", stop)
+    with pytest.raises(RuntimeError, match="stopped in the fit"):
+        reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    assert _stage_names(stages) == {"alignment", "extraction", "finetune"} and not out.exists()
+    path = stages / "measurements.npz"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    monkeypatch.undo()
+    reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    # the extraction ran again (its file failed its checksum) and gave the same bytes, so fine-tuning's key held
+    assert ReconstructionFolder(out).summary()["resumed"] == ["alignment", "finetune"]
+    assert _files(out) == _files(run_a)
+
+    monkeypatch.setattr(fitting, "fit_ggx", stop)
+    with pytest.raises(RuntimeError):
+        reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    monkeypatch.undo()
+    other = ReconstructConfig(resolution=12, holdout_line=3)
+    reconstruct(validate_dir / "capture", out, other, progress=False)
+    assert ReconstructionFolder(out).summary()["resumed"] == ["alignment", "extraction"]  # fine-tuning's key differs
