@@ -44,10 +44,13 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int 
     from reconstruction.pipeline import ReconstructConfig, reconstruct
     from reconstruction.report import write_report
     from reconstruction.validation import evaluate, thresholds_for
-    from twin.capture.runner import capture
+    from twin.capture.runner import SAMPLE_RESOLUTION, capture
 
     resolution = resolution or ReconstructConfig.resolution
-    cap = capture(rig_obj, sample, output / "capture", seed=seed, device=device, progress=progress, learned=learned)
+    # the sample's maps at least as fine as the texture grid, so that a fine grid never scores upsampled maps
+    # (issue #13: capture at 1024^2, reconstruct at 1024^2)
+    cap = capture(rig_obj, sample, output / "capture", seed=seed, device=device, progress=progress, learned=learned,
+                  resolution=max(SAMPLE_RESOLUTION, resolution))
     config = replace(ReconstructConfig(), resolution=resolution, device=device, network=str(network))
     recon = reconstruct(cap, output / "reconstruction", config, progress=progress, rig=rig_obj)
     metrics, panels = evaluate(cap, recon, rig_obj, device=device)

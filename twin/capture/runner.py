@@ -105,8 +105,11 @@ def photos(rig, sims: dict, patterns, todo, device: str, stage=None):
         yield photo, raws, hdr, record
 
 
-def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", resolution: int = 128, learned=None,
-                   cameras: str | None = None, truth=None) -> tuple[dict, object, list]:
+SAMPLE_RESOLUTION = 128  # texels per side of a built-in sample's maps when a capture renders it
+
+
+def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", resolution: int = SAMPLE_RESOLUTION,
+                   learned=None, cameras: str | None = None, truth=None) -> tuple[dict, object, list]:
     """(the manifest header, the pattern set, the plan) of the capture these arguments describe: what a capture
     folder must hold to be resumed (or, finished, to be reused) for them."""
     patterns = build_patterns(rig, learned)
@@ -124,7 +127,7 @@ def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", res
 
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
-            resolution: int = 128, learned=None, progress: bool = True, devices: dict | None = None,
+            resolution: int = SAMPLE_RESOLUTION, learned=None, progress: bool = True, devices: dict | None = None,
             truth=None) -> Path:
     """Run the plan into `output` (resuming a killed run there). Returns the folder. `devices` are the
     hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
