@@ -27,7 +27,7 @@ import numpy as np
 from .alignment import AlignConfig
 from .finetune import FinetuneConfig
 from .fitting import FitConfig
-from .output import ReconstructionFolder, stages_folder
+from .output import STAGES, ReconstructionFolder, stages_folder
 
 @dataclass(frozen=True)
 class ReconstructConfig:
@@ -116,6 +116,8 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
         shutil.rmtree(stages.dir, ignore_errors=True)  # OUT holds its files now (hard links)
     finally:
         os.close(lock)
+        if not (stages.dir / STAGES).exists():  # nothing finished to resume from
+            shutil.rmtree(stages.dir, ignore_errors=True)
     recon.directory = out
     return recon
 

@@ -109,3 +109,15 @@ def test_a_tampered_stage_is_recomputed_and_other_settings_start_over(validate_d
     other = ReconstructConfig(resolution=12, holdout_line=3)
     reconstruct(validate_dir / "capture", out, other, progress=False)
     assert ReconstructionFolder(out).summary()["resumed"] == ["alignment", "extraction"]  # fine-tuning's key differs
+
+
+def test_a_run_that_finished_no_stage_leaves_nothing(validate_dir, tmp_path, monkeypatch):
+    import reconstruction.alignment as alignment
+
+    def fail(*a, **k):
+        raise RuntimeError("no alignment")
+
+    monkeypatch.setattr(alignment, "align_views", fail)
+    with pytest.raises(RuntimeError, match="no alignment"):
+        reconstruct(validate_dir / "capture", tmp_path / "D", CONFIG, progress=False)
+    assert list(tmp_path.iterdir()) == []  # no output, no stage folder, no half-built folder
