@@ -60,7 +60,7 @@ def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *
 
 
 # TF32 keeps 10 of float32's 23 mantissa bits: each factor of W m is off by at most 2^-10 relative (truncated;
-# 2^-11 rounded), the product by 2 2^-10, and float32 sums of L = 12,288 terms add at most L 2^-24 = 7.3e-4. Every
+# 2^-11 rounded), the product by 2 x 2^-10, and float32 sums of L = 12,288 terms add at most L 2^-24 = 7.3e-4. Every
 # term is >= 0 for drives W >= 0 (m is radiance), so the sum's relative error is at most their sum, 2.7e-3.
 # Measured on an H100 against a float64 projection of the same lumitexels: 5.4e-4 at most (docs/performance.md),
 # against ~1% per-pixel sensor noise (docs/accuracy.md).
