@@ -127,11 +127,12 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
     would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
     import twin
     from reconstruction.metrics import format_table
+    from twin.capture.runner import SAMPLE_RESOLUTION
     from twin.materials.samples import load_sample
 
     rig_obj = twin.load_rig(rig)
     if device == "cpu" and not anyway:
-        maps = load_sample(sample, resolution=128)
+        maps = load_sample(sample, resolution=SAMPLE_RESOLUTION)
         if capture_evaluations(rig_obj, maps) > ESTIMATE_ABOVE and \
                 (est := cpu_capture_estimate(rig_obj, maps))["render_s"] > TOO_LONG_S:
             raise ValueError(

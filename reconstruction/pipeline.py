@@ -154,22 +154,24 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
             print(f"[reconstruct] {name} ...", flush=True)
         return time.perf_counter()
 
-    def finished(name, key):
-        """The stage's record when a run before this one finished it with this key (then reused), else None."""
+    def finished(name, key, *needs):
+        """The stage's record when a run before this one finished it with this key (then reused), else None (also
+        when the record lacks what this run needs from it)."""
         rec = stages.finished_stage(name, key)
-        if rec is not None:
+        if rec is not None and all(k in rec for k in ("seconds", *needs)):
             resumed.append(name)
             timings[f"{name}_s"] = rec["seconds"]
             if progress:
                 print(f"[reconstruct] {name}: resumed from {stages.dir}", flush=True)
-        return rec
+            return rec
+        return None
 
     def done(name, key, t, **extra):
         timings[f"{name}_s"] = time.perf_counter() - t
         stages.record_stage(name, key, {"seconds": timings[f"{name}_s"], **_jsonable(extra)})
 
     key = _key(session.content_digest(), rig.digest(), config.device, asdict(config.align))
-    rec = finished("alignment", key)
+    rec = finished("alignment", key, "info")
     if rec is not None:
         alignment = stages.alignment(rec["info"])
     else:
@@ -204,7 +206,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         raise ValueError(f"holdout_line must lie in [0, {meas.lines.shape[1]}), got {hold}")
     ft_cfg = _with_holdout(config.finetune, hold, config.device)
     key = _key(key, _network_digest(model), asdict(ft_cfg))
-    rec = finished("finetune", key)
+    rec = finished("finetune", key, "finetune")
     if rec is None:  # the decoded latents are fine-tuning's start; a resumed run needs only the network
         z56 = decode(model, meas.learned, device=config.device)
     timings["decode_s"] = time.perf_counter() - t

@@ -92,14 +92,15 @@ def test_reference_details(opensvbrdf_rig, device):
 def test_lambertian_plate_closed_form(mini, device):
     """A Lambertian plate under each LED: m = I * (rho_d / pi) * cos(theta_i) * cos(theta_l) / r^2 with r
     in metres (physical convention), evaluated here in float64. Points well inside the frame so no
-    LED is shadowed (checked separately below). float32 kernel: <= 1e-5 relative."""
+    LED is shadowed (checked separately below). float32 kernel: <= 1e-5 relative; also the fast-math rows
+    kernel (fast=True; the default path's kernel on CUDA), whose approximate division and square root stay
+    within that too."""
     rng = np.random.default_rng(3)
     P = 16
     pos = np.c_[rng.uniform(-40, 40, (P, 2)), np.full(P, -122.0)]
     n = np.tile([0.0, 0.0, 1.0], (P, 1))
     t = np.tile([1.0, 0.0, 0.0], (P, 1))
     rd = rng.uniform(0.1, 1, (P, 3))
-    m = twin.lumitexels(mini, pos, n, t, rd, np.zeros((P, 3)), np.full(P, 0.3), np.full(P, 0.3), device=device)
     upper = ~mini.is_bottom
     d = mini.led_positions[None] - pos[:, None]
     r = np.linalg.norm(d, axis=-1)
@@ -107,8 +108,11 @@ def test_lambertian_plate_closed_form(mini, device):
     cos_i = np.clip(wi[..., 2], 0, None)
     cos_l = np.clip(-(wi * mini.led_normals[None]).sum(-1), 0, None)
     want = rd[:, None, :] / np.pi * (mini.leds.intensity[None] * (cos_i * cos_l / (r * 1e-3) ** 2)[..., None])
-    np.testing.assert_allclose(m[:, upper], want[:, upper], rtol=1e-5, atol=0)
-    assert np.all(m[:, ~upper] == 0)  # opaque sample (transparency 0): no light from below
+    for fast in (False, True):
+        m = twin.lumitexels(mini, pos, n, t, rd, np.zeros((P, 3)), np.full(P, 0.3), np.full(P, 0.3), device=device,
+                            fast=fast)
+        np.testing.assert_allclose(m[:, upper], want[:, upper], rtol=1e-5, atol=0, err_msg=f"fast={fast}")
+        assert np.all(m[:, ~upper] == 0)  # opaque sample (transparency 0): no light from below
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -300,6 +304,8 @@ def test_project_block_diagonal(device):
         got = project(m.to(dev), w.to(dev), tc).cpu().double()
         assert got.shape == (40, 9, 3) and ok(got - want), tc
     assert torch.backends.cuda.matmul.allow_tf32 == flag  # project leaves torch's TF32 setting as it was
+    with pytest.raises(ValueError, match=r"project needs lumitexels \(P, L, 3\)"):
+        project(m, w[:, :-1])
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -75,6 +75,9 @@ def project(m, w, tensor_cores: bool = False):
     sum_l |W| m): 3.9 ms instead of 19. Returns (P, K, 3)."""
     import torch
 
+    if m.ndim != 3 or m.shape[2] != 3 or w.ndim != 3 or w.shape[1:] != m.shape[1:]:
+        raise ValueError(f"project needs lumitexels (P, L, 3) and patterns (K, L, 3), got {tuple(m.shape)} and "
+                         f"{tuple(w.shape)}")
     P, L, _ = m.shape
     Kn = w.shape[0]
     block = torch.zeros(L, 3, Kn, 3, dtype=m.dtype, device=m.device)

@@ -163,10 +163,11 @@ def _lumitexel_rows(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l:
 point_frames_kernel = wp.kernel(_point_frames)
 lumitexel_kernel = wp.kernel(_lumitexel)
 # Forward only: a dynamic loop has no adjoint. The fast twin is compiled with fast math: approximate division
-# and square root (<= 2 ulp) and denormals flushed, which no lumitexel of alpha >= 0.006 comes near. Against
-# lumitexel_kernel on an H100, over 65,536 random points x 12,288 LEDs: largest difference 7.9e-5 of |m| + 1e-6
-# max |m|, 99.999th percentile 9.7e-6 (docs/performance.md): within the float32 paths' same-work tolerance
-# (twin.bench.LUMITEXEL_RTOL), far below the sensor's ~1% noise.
+# and square root (<= 2 ulp) and denormals flushed, which no lumitexel of alpha >= 0.006 comes near. _lumitexel
+# compiled with fast math against lumitexel_kernel on an H100, over 65,536 random points x 12,288 LEDs: largest
+# difference 7.9e-5 of |m| + 1e-6 max |m|, 99.999th percentile 9.7e-6 (docs/performance.md); the rows kernels are
+# checked against lumitexel_kernel (tests/test_forward.py) and the bench's torch baseline within the float32
+# paths' same-work tolerance (twin.bench.LUMITEXEL_RTOL), far below the sensor's ~1% noise.
 lumitexel_rows_kernel = wp.kernel(enable_backward=False, module="unique")(_lumitexel_rows)
 lumitexel_rows_kernel_fast = wp.kernel(enable_backward=False, module="unique",
                                        module_options={"fast_math": True})(_lumitexel_rows)
