@@ -442,13 +442,36 @@ def _release(device: torch.device) -> None:
 # ------------------------------------------------------------------------------------------------ finetune
 
 
-def finetune(model, latent, lines, line_weights, config: FinetuneConfig = FinetuneConfig()) -> FinetuneResult:
+# how often fine-tuning saves its state to a checkpoint (ours): a 1024^2 paper-rig sample fine-tunes for ~6 minutes
+# (docs/accuracy.md), a save of its latents (200 floats a texel) takes about a second there
+CHECKPOINT_SECONDS = 60.0
+
+
+def _resumed(checkpoint, n: int, ad: int, sd: int, runs: int) -> dict | None:
+    """The state a killed fine-tuning saved to `checkpoint` (finetune), checked against this problem, or None."""
+    state = checkpoint.load() if checkpoint is not None else None
+    if state is None:
+        return None
+    shapes = {"grey1": (n, ad + sd), "rgb2": (n, 3 * ad + sd), "rgb3": (n, 3 * ad + sd)}
+    if (any(np.shape(state.get(k)) != v for k, v in shapes.items()) or not 0 <= int(state.get("done", -1)) <= runs
+            or not all(np.isfinite(state[k]).all() for k in shapes)):
+        raise ValueError("the fine-tuning checkpoint does not belong to this fine-tuning (another texel count or "
+                         "batch size, or non-finite latents); remove it to start again")
+    return state
+
+
+def finetune(model, latent, lines, line_weights, config: FinetuneConfig = FinetuneConfig(),
+             checkpoint=None) -> FinetuneResult:
     """The three fine-tuning passes (module docstring) of N texels.
 
     model: an AcquisitionNet on config.device (its decoder is used, in eval mode, parameters frozen);
     latent: (N, ad + sd) grey network latent [a, s]; lines: (N, K, 3) linear-light photo measurements in
     network units (finite; slightly negative values allowed, clamped at 0); line_weights: (K, L_upper, 3)
-    in [0, 1]. Returns a FinetuneResult (numpy float32 latents)."""
+    in [0, 1]; checkpoint: None, or an object with load() -> dict | None and save(dict) where the passes keep their
+    state as they go (the latents so far, at most every CHECKPOINT_SECONDS and at the end of each pass): given the
+    state a killed run saved, the passes go on from the last batch it finished and end with the same latents as a
+    run that was never stopped (each batch's optimisation depends on its own texels only). Returns a
+    FinetuneResult (numpy float32 latents)."""
     if not isinstance(config, FinetuneConfig):
         raise ValueError(f"config must be a FinetuneConfig, got {type(config).__name__}")
     ad, sd, num_leds = _check_model(model)
@@ -484,14 +507,16 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
     w_dev = w.to(dev)
 
     passes = {"pass0": torch.cat([z[:, :ad]] * 3 + [z[:, ad:]], dim=1)}
-    grey1 = torch.empty_like(z)
-    rgb2 = torch.empty_like(passes["pass0"])
-    rgb3 = torch.empty_like(passes["pass0"])
-    history = {p: [] for p in PASSES[1:]}
-    iterations = {p: [] for p in PASSES[1:]}
-    before = {p: 0.0 for p in PASSES[1:]}
-    after = {p: 0.0 for p in PASSES[1:]}
-    seconds = {}
+    state = _resumed(checkpoint, n, ad, sd, 3 * len(slices))
+    if state is None:
+        state = {"phase": "pass1", "done": 0, "grey1": np.zeros(tuple(z.shape), np.float32),
+                 "rgb2": np.zeros(tuple(passes["pass0"].shape), np.float32),
+                 "rgb3": np.zeros(tuple(passes["pass0"].shape), np.float32),
+                 **{k: {p: [] for p in PASSES[1:]} for k in ("history", "iterations")},
+                 **{k: {p: 0.0 for p in PASSES[1:]} for k in ("before", "after", "seconds")}}
+    grey1, rgb2, rgb3 = (torch.from_numpy(np.array(state[k], np.float32)) for k in ("grey1", "rgb2", "rgb3"))
+    history, iterations, before, after, seconds = (state[k] for k in ("history", "iterations", "before", "after",
+                                                                    "seconds"))
     problems = [_Problem(model, y[sl].to(dev), w_dev, ad, eps) for sl in slices]
 
     def track(name, x0, energy, i):
@@ -504,33 +529,45 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
         iterations[name].append(done)
         return x.cpu()
 
-    with _frozen(model), torch.enable_grad():
-        # pass 1: the grey 56-D latent against the mean over RGB, W[..., 0]
-        t0 = time.perf_counter()
-        for sl, pb in zip(slices, problems):
-            grey1[sl] = track("pass1", z[sl].to(dev), pb.e1, 0)
-        _sync(dev)
-        seconds["pass1"] = time.perf_counter() - t0
-        passes["pass1"] = torch.cat([grey1[:, :ad]] * 3 + [grey1[:, ad:]], dim=1)
+    last_save = time.perf_counter()
 
-        # pass 2: each channel's albedo a_c from a_1, shape fixed at s_1, channel c of the photos, W[..., 0]
-        t0 = time.perf_counter()
-        for sl, pb in zip(slices, problems):
+    def finished(unit: int, last: bool) -> None:
+        """Batch unit (pass-major) is done: save the state when it is time, and at the end of each pass."""
+        nonlocal last_save
+        if checkpoint is not None and (last or time.perf_counter() - last_save >= CHECKPOINT_SECONDS):
+            state.update(phase=PASSES[1 + (unit + 1) // len(slices)] if unit + 1 < 3 * len(slices) else "done",
+                         done=unit + 1, grey1=grey1.numpy(), rgb2=rgb2.numpy(), rgb3=rgb3.numpy())
+            checkpoint.save(state)
+            last_save = time.perf_counter()
+
+    def run(p: int, step) -> None:
+        """Pass p (1, 2, 3) over the batches not yet done, `step(sl, pb)` for each."""
+        t0, first = time.perf_counter(), (p - 1) * len(slices)
+        for b in range(max(int(state["done"]) - first, 0), len(slices)):
+            step(slices[b], problems[b])
+            _sync(dev)
+            seconds[PASSES[p]] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            if p == 2 and b == len(slices) - 1:
+                rgb2[:, 3 * ad:] = grey1[:, ad:]
+            finished(first + b, b == len(slices) - 1)
+
+    with _frozen(model), torch.enable_grad():
+        def pass1(sl, pb):  # the grey 56-D latent against the mean over RGB, W[..., 0]
+            grey1[sl] = track("pass1", z[sl].to(dev), pb.e1, 0)
+
+        def pass2(sl, pb):  # each channel's albedo a_c from a_1, shape fixed at s_1, channel c of the photos, W[..., 0]
             a1, s1 = grey1[sl, :ad].to(dev), grey1[sl, ad:].to(dev)
             for c in range(3):
                 rgb2[sl, c * ad:(c + 1) * ad] = track("pass2", a1, (lambda a, c=c: pb.e2(a, s1, c)), 1)
-        rgb2[:, 3 * ad:] = grey1[:, ad:]
-        _sync(dev)
-        seconds["pass2"] = time.perf_counter() - t0
-        passes["pass2"] = rgb2.clone()
 
-        # pass 3: the joint 72-D latent against the RGB photos, W[..., c]
-        t0 = time.perf_counter()
-        for sl, pb in zip(slices, problems):
+        def pass3(sl, pb):  # the joint 72-D latent against the RGB photos, W[..., c]
             rgb3[sl] = track("pass3", rgb2[sl].to(dev), pb.e3, 2)
-        _sync(dev)
-        seconds["pass3"] = time.perf_counter() - t0
-        passes["pass3"] = rgb3
+
+        for p, step in enumerate((pass1, pass2, pass3), start=1):
+            run(p, step)
+    passes["pass1"] = torch.cat([grey1[:, :ad]] * 3 + [grey1[:, ad:]], dim=1)
+    passes["pass2"], passes["pass3"] = rgb2, rgb3
 
     _release(dev)
     out = {p: passes[p].numpy().astype(np.float32, copy=False) for p in PASSES}

@@ -1144,7 +1144,8 @@ def _degree(weights, grid_shape) -> torch.Tensor:
     return deg
 
 
-def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_shape) -> tuple[torch.Tensor, dict]:
+def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_shape, resume: dict | None = None,
+                     save=None) -> tuple[torch.Tensor, dict]:
     """All texels' numbers at once under a smoothness prior on the roughness (ours, issue #14;
     FitConfig.alpha_prior = tau). Minimises, over x_i = [u, v, m, c, s] (_to_tensor: the normal's two numbers,
     the mean log alpha and the anisotropy as a vector at twice the tangent angle, so that neighbours compare
@@ -1159,7 +1160,8 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     (issue #14's fabric and paper), about the per-texel noise of the extracted photos (0.4%), so a texel's own
     fit errs by 15-60% and noise turns an isotropic lobe anisotropic, while the noise-free oracle fit is exact
     (docs/accuracy.md). The photos of a region are pooled, not its per-texel estimates, which noise biases.
-    Returns (q, info)."""
+    `resume`: the state a killed run saved (_fit_direct's checkpoint), from which the loop goes on as it would have;
+    `save(state)` is called after every step. Returns (q, info)."""
     c = prob.config
     R, C = (int(v) for v in grid_shape)
     weights = _colour_weights(rho_d, (R, C), 1.0 / c.alpha_prior ** 2)
@@ -1190,11 +1192,23 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         a = x[:, prior_dims]
         return float((a * _laplacian(a, weights, (R, C))).sum())  # sum_{i~j} w_ij |a_i - a_j|^2
 
-    rows, total, JJ, Jr = data(x, True)
-    sigma2 = float((rows / max(_residual_count(prob) - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
-    F = total / sigma2 + prior(x)
-    F0, mu, kept, cg = F, c.lm_damping, 0, 0
-    for _ in range(c.steps):
+    if resume is None:
+        rows, total, JJ, Jr = data(x, True)
+        sigma2 = float((rows / max(_residual_count(prob) - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
+        F = total / sigma2 + prior(x)
+        F0, mu, kept, cg, tried = F, c.lm_damping, 0, 0, 0
+    else:  # the same numbers the loop held when they were saved; the system at x is recomputed (deterministic)
+        x = torch.as_tensor(resume["x"], dtype=torch.float64, device=x.device)
+        sigma2, F, F0, mu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "kept", "cg", "tried"))
+        rows, total, JJ, Jr = data(x, True) if tried < c.steps and not resume["done"] else (None,) * 4
+    done = resume is not None and resume["done"]
+
+    def state():
+        return {"x": x.cpu().numpy(), "sigma2": sigma2, "F": F, "F0": F0, "mu": mu, "kept": kept, "cg": cg,
+                "tried": tried, "done": done}
+
+    while not done and tried < c.steps:
+        tried += 1
         H = JJ / sigma2
         g = Jr / sigma2
         g[:, prior_dims] += _laplacian(x[:, prior_dims], weights, (R, C))
@@ -1207,13 +1221,14 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         Fn = total_n / sigma2 + prior(xn)
         if not math.isfinite(Fn) or Fn >= F:
             mu *= 4
-            if mu > 1e10:
-                break
-            continue
-        gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
-        if gain < c.tolerance:
-            break
-        rows, total, JJ, Jr = data(x, True)
+            done = mu > 1e10
+        else:
+            gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
+            done = gain < c.tolerance
+            if not done:
+                rows, total, JJ, Jr = data(x, True)
+        if save is not None:
+            save(state())
     out = _from_tensor(x.float())
     out[:, 3:5] = out[:, 3:5].clamp(lo, hi)
     return out, {"joint_steps": kept, "joint_cg_iterations": cg, "joint_objective": [F0, F],
@@ -1249,16 +1264,55 @@ def _joint_albedos(prob: _Problem, sums: list, rho_d: torch.Tensor, rho_s: torch
     return (x[:, :3].clamp(0.0, 1.0).to(rho_d.dtype), x[:, 3:].clamp(0.0, c.rho_s_max).to(rho_s.dtype), it)
 
 
-def _fit_direct(prob: _Problem, grid_shape=None) -> FitResult:
+# how often the direct fit's chunks save their state to a checkpoint (ours): a 1024^2 paper-rig fit takes minutes
+# (docs/performance.md), a save of its numbers (5 floats a texel) a fraction of a second
+CHECKPOINT_SECONDS = 30.0
+
+
+def _resumed(checkpoint, prob: _Problem) -> dict | None:
+    """The state a killed fit saved to `checkpoint` (_fit_direct), checked against this problem, or None."""
+    state = checkpoint.load() if checkpoint is not None else None
+    if state is None:
+        return None
+    q, hist = np.asarray(state.get("q")), np.asarray(state.get("history"))
+    if (state.get("phase") not in ("chunks", "propagation", "joint") or q.shape != (prob.n, GEOMETRY_SIZE)
+            or hist.shape != (prob.config.steps,) or not np.isfinite(q).all()
+            or (state["phase"] == "joint" and np.shape(state.get("joint", {}).get("x")) != q.shape)):
+        raise ValueError("the fit's checkpoint does not belong to this fit (another texel count or iteration count, "
+                         "or non-finite numbers); remove it to start the fit again")
+    return state
+
+
+def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None) -> FitResult:
     """Levenberg-Marquardt on the 5 geometry numbers per texel from the best initial candidate, with the
     albedos in closed form at every evaluation (module docstring), in chunks of `batch` texels; then, on a
-    grid (grid_shape given), FitConfig.propagation rounds of neighbour propagation (_propagate)."""
+    grid (grid_shape given), FitConfig.propagation rounds of neighbour propagation (_propagate), and the joint prior.
+
+    checkpoint: None, or an object with load() -> dict | None and save(dict) where the fit keeps its state as it
+    goes: the numbers of the chunks fitted so far (at most every CHECKPOINT_SECONDS), after each propagation round,
+    and after each step of the joint prior. A fit given the state a killed one saved goes on from there and ends
+    with the same numbers as one that was never stopped (each chunk's fit depends on its own texels only, and the
+    later phases on the numbers saved); the state's arrays are numpy, the rest JSON-able."""
     t_start = time.perf_counter()
     c = prob.config
-    history = np.zeros(c.steps)
-    q = torch.empty(prob.n, GEOMETRY_SIZE, device=prob.pos.device)
-    init_s = iter_s = 0.0
-    for idx in _chunks(prob, c.batch):
+    state = _resumed(checkpoint, prob)
+    if state is None:
+        state = {"phase": "chunks", "chunks_done": 0, "q": np.zeros((prob.n, GEOMETRY_SIZE), np.float32),
+                 "history": np.zeros(c.steps), "restarted": [],
+                 "seconds": {"init": 0.0, "iterations": 0.0, "propagation": 0.0, "joint": 0.0}}
+    seconds = state["seconds"]
+    history = np.array(state["history"], dtype=np.float64)
+    q = torch.as_tensor(np.asarray(state["q"], np.float32), device=prob.pos.device)
+
+    def save(**changes):
+        if checkpoint is not None:
+            state.update(changes, q=q.cpu().numpy(), history=history.copy(), seconds=seconds)
+            checkpoint.save(state)
+
+    last_save = time.perf_counter()
+    chunks = _chunks(prob, c.batch)
+    for k in range(state["chunks_done"] if state["phase"] == "chunks" else len(chunks), len(chunks)):
+        idx = chunks[k]
         part = prob.part(idx)
         t0 = time.perf_counter()
         with torch.no_grad():
@@ -1266,21 +1320,34 @@ def _fit_direct(prob: _Problem, grid_shape=None) -> FitResult:
             geom = _geometry(g, part.frame, c)
             q0 = torch.cat([g[:, :3], torch.log(geom["alpha_x"])[:, None], torch.log(geom["alpha_y"])[:, None]], 1)
         t1 = time.perf_counter()
-        init_s += t1 - t0
+        seconds["init"] += t1 - t0
         q[idx] = _levenberg_marquardt(part, q0, history)
-        iter_s += time.perf_counter() - t1
-    t2 = time.perf_counter()
-    restarted = []
-    for _ in range(c.propagation if grid_shape is not None else 0):
-        q, moved = _propagate(prob, q, grid_shape)
-        restarted.append(moved)
-        if not moved:
-            break
+        seconds["iterations"] += time.perf_counter() - t1
+        if time.perf_counter() - last_save >= CHECKPOINT_SECONDS or k == len(chunks) - 1:
+            save(chunks_done=k + 1, phase="chunks" if k < len(chunks) - 1 else "propagation")
+            last_save = time.perf_counter()
+    restarted = state["restarted"]
+    if state["phase"] in ("chunks", "propagation"):
+        for _ in range(c.propagation - len(restarted) if grid_shape is not None else 0):
+            if restarted and not restarted[-1]:
+                break
+            t2 = time.perf_counter()
+            q, moved = _propagate(prob, q, grid_shape)
+            restarted.append(moved)
+            seconds["propagation"] += time.perf_counter() - t2
+            save(restarted=restarted)
     t3 = time.perf_counter()
     parts = _final(prob, q)
     prior = {}
+    joint_before = seconds["joint"]
     if grid_shape is not None and c.alpha_prior is not None:
-        q, prior = _joint_roughness(prob, q, torch.cat([p[2] for p in parts]), grid_shape)
+        def save_joint(js):
+            seconds["joint"] = joint_before + time.perf_counter() - t3
+            save(phase="joint", joint=js)
+
+        q, prior = _joint_roughness(prob, q, torch.cat([p[2] for p in parts]), grid_shape,
+                                    state.get("joint") if state["phase"] == "joint" else None,
+                                    save_joint if checkpoint is not None else None)
         sums = []
         parts = _final(prob, q, sums)
         rd, rs, prior["albedo_cg_iterations"] = _joint_albedos(prob, sums, torch.cat([p[2] for p in parts]),
@@ -1288,10 +1355,11 @@ def _fit_direct(prob: _Problem, grid_shape=None) -> FitResult:
                                                                prior["joint_sigma2"])
         sizes = [len(p[2]) for p in parts]
         parts = [(g, loss, a, b) for (g, loss, _, _), a, b in zip(parts, rd.split(sizes), rs.split(sizes))]
+    seconds["joint"] = joint_before + time.perf_counter() - t3
     geom = {k: torch.cat([p[0][k] for p in parts]) for k in parts[0][0]}
-    info = {"init_seconds": init_s, "seconds_per_iteration": iter_s / max(c.steps, 1),
-            "propagation_seconds": t3 - t2, "propagation_restarts": restarted,
-            "joint_seconds": time.perf_counter() - t3, **prior,
+    info = {"init_seconds": seconds["init"], "seconds_per_iteration": seconds["iterations"] / max(c.steps, 1),
+            "propagation_seconds": seconds["propagation"], "propagation_restarts": restarted,
+            "joint_seconds": seconds["joint"], **prior,
             "texel_loss": torch.cat([p[1] for p in parts]).cpu().numpy()}
     return _result(prob, geom, torch.cat([p[2] for p in parts]), torch.cat([p[3] for p in parts]),
                    history / prob.n, t_start, info)
@@ -1388,18 +1456,22 @@ FITTING_METHODS = {"direct": _fit_direct, "neural": _fit_neural}
 
 
 def fit_method(rig, positions, lumitexels, *, method: str | None = None, lines=None, line_weights=None,
-               secondary=None, grid_shape=None, config: FitConfig = FitConfig()) -> FitResult:
+               secondary=None, grid_shape=None, config: FitConfig = FitConfig(), checkpoint=None) -> FitResult:
     """Dispatch to FITTING_METHODS[method] (None: config.method) after checking the inputs (fit_ggx)."""
     if not isinstance(config, FitConfig):
         raise ValueError(f"config must be a FitConfig, got {type(config).__name__}")
     if method is not None and method != config.method:
         config = replace(config, method=method)
+    if checkpoint is not None and config.method != "direct":
+        raise ValueError(f"a checkpoint resumes the direct method only, not {config.method!r}")
     prob = _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config, secondary)
+    if checkpoint is not None:
+        return FITTING_METHODS[config.method](prob, grid_shape, checkpoint)
     return FITTING_METHODS[config.method](prob, grid_shape)
 
 
 def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, secondary=None, grid_shape=None,
-            config: FitConfig = FitConfig()) -> FitResult:
+            config: FitConfig = FitConfig(), checkpoint=None) -> FitResult:
     """Fit anisotropic GGX and the local frame per texel (module docstring) with config.method.
 
     positions (N, 3) mm, world; lumitexels (N, L_upper, 3) in network units (upper LEDs in rig order,
@@ -1410,11 +1482,11 @@ def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, second
     weights), optional together: any photos of config.camera under patterns (the linear lights, the learned
     patterns' + and - frames); secondary (photos (N, K2, 3), weights (K2, L_upper, 3)) the same for
     config.secondary_camera (optional; each camera's photos weigh lambda_lines in the loss); grid_shape (R, C)
-    with N = R C in row-major order, needed by method "neural". Raises ValueError on NaN/Inf or mis-shaped input
-    (a source's, when the fit asks for those texels). Deterministic on the CPU: the same inputs and seed give the
-    same result."""
+    with N = R C in row-major order, needed by method "neural"; checkpoint (direct method): where the fit keeps its
+    state so that a killed fit resumes (_fit_direct). Raises ValueError on NaN/Inf or mis-shaped input (a source's,
+    when the fit asks for those texels). Deterministic on the CPU: the same inputs and seed give the same result."""
     return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary,
-                      grid_shape=grid_shape, config=config)
+                      grid_shape=grid_shape, config=config, checkpoint=checkpoint)
 
 
 # --- export ----------------------------------------------------------------------------------------------

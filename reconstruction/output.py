@@ -18,6 +18,9 @@ as above plus stages.json), so that a killed or failed run resumes after its las
 extraction, fine-tuning): stages.json holds, per stage, the key of everything it was computed from (the capture's
 content, the rig, the settings, the network) and the sha256 of its files; a stage is reused only when both match.
 Its files are hard-linked into the finished folder, and the stage folder is removed once OUT is complete.
+Fine-tuning and the fit, the long stages at the real device's scale, also keep their unfinished state there
+(finetune_state.npz and fit_state.npz, the stages "finetune_state" and "fit_state": the checkpoints of
+reconstruction.finetune.finetune and reconstruction.fitting._fit_direct), so that a killed one goes on where it stood.
 """
 from __future__ import annotations
 
@@ -38,7 +41,11 @@ LATENT = "latent.exr"
 LATENT_PASSES = "latent_passes.npz"
 MAPS = "maps"
 STAGES = "stages.json"
-STAGE_FILES = {"alignment": (ALIGNMENT,), "extraction": (MEASUREMENTS,), "finetune": (LATENT, LATENT_PASSES)}
+FINETUNE_STATE = "finetune_state.npz"
+FIT_STATE = "fit_state.npz"
+STAGE_FILES = {"alignment": (ALIGNMENT,), "extraction": (MEASUREMENTS,), "finetune": (LATENT, LATENT_PASSES),
+               "finetune_state": (FINETUNE_STATE,), "fit_state": (FIT_STATE,)}
+PARTIAL_STAGES = ("finetune_state", "fit_state")  # a stage's unfinished state (module docstring)
 
 
 def stages_folder(out) -> Path:
@@ -129,6 +136,14 @@ class ReconstructionFolder:
         doc[stage] = {"key": key, "files": {f: file_sha256(self.dir / f) for f in STAGE_FILES[stage]}, "extra": extra}
         write_bytes_atomic(self.dir / STAGES, json.dumps(doc, indent=1).encode())
 
+    def forget_stage(self, stage: str) -> None:
+        """Remove a stage's record and files (an unfinished stage's state once the stage has finished)."""
+        doc = self._stages()
+        if doc.pop(stage, None) is not None:
+            write_bytes_atomic(self.dir / STAGES, json.dumps(doc, indent=1).encode())
+        for f in STAGE_FILES[stage]:
+            (self.dir / f).unlink(missing_ok=True)
+
     def link_stage(self, stage: str, dest: "ReconstructionFolder") -> None:
         """Hard-link the stage's files into `dest` (copied where the file system has no hard links)."""
         import shutil
@@ -160,6 +175,36 @@ class ReconstructionFolder:
         """pass0 ... pass3 -> (N, 72) latents, as write_latent wrote them."""
         with np.load(self.dir / LATENT_PASSES, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
+
+    def write_state(self, stage: str, state: dict) -> None:
+        """An unfinished stage's state (PARTIAL_STAGES; a dict of numpy arrays, JSON-able values and such dicts):
+        the arrays by their dotted names, the rest as JSON in `__meta__`."""
+        arrays = {}
+
+        def split(d: dict, prefix: str) -> dict:
+            out = {}
+            for k, v in d.items():
+                if isinstance(v, np.ndarray):
+                    arrays[prefix + k] = v
+                else:
+                    out[k] = split(v, f"{prefix}{k}.") if isinstance(v, dict) else v
+            return out
+
+        meta = json.dumps(split(state, "")).encode()
+        self._npz(STAGE_FILES[stage][0], __meta__=np.frombuffer(meta, dtype=np.uint8), **arrays)
+
+    def state(self, stage: str) -> dict:
+        """The state written by write_state."""
+        with np.load(self.dir / STAGE_FILES[stage][0], allow_pickle=False) as z:
+            state = json.loads(z["__meta__"].tobytes())
+            for name in z.files:
+                if name != "__meta__":
+                    *path, leaf = name.split(".")
+                    d = state
+                    for k in path:
+                        d = d.setdefault(k, {})
+                    d[leaf] = z[name]
+        return state
 
     def maps(self):
         from twin.materials.samples import read_maps

@@ -215,10 +215,14 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         ft_info = rec["finetune"]
     else:
         t = stage(f"fine-tuning (line {hold} held out)")
-        ft = finetune(model, z56, meas.lines, meas.line_weights, ft_cfg)
+        checkpoint = _Checkpoint(stages, "finetune_state", key)
+        ft = finetune(model, z56, meas.lines, meas.line_weights, ft_cfg, checkpoint=checkpoint)
         latent, ft_info = ft.latent, {"iterations": ft.iterations, "seconds": ft.seconds}
         stages.write_latent(latent, grid.shape, ft.passes)
         done("finetune", key, t, finetune=ft_info)
+        stages.forget_stage("finetune_state")
+        if checkpoint.loaded is not None:
+            resumed.append(f"finetune ({checkpoint.loaded})")
     stages.link_stage("finetune", out)
 
     t = stage("fitting")
@@ -230,10 +234,14 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     # specular lobe (docs/accuracy.md: ceramic alpha 21% -> 12% with the primary photos, ...)
     photos = np.concatenate([meas.lines[:, keep], meas.learned_photos[:, 0]], axis=1)
     weights = np.concatenate([meas.line_weights[keep], meas.learned_weights], axis=0)
+    fit_cfg = replace(config.fit, device=config.device)
+    checkpoint = _Checkpoint(stages, "fit_state", _key(key, asdict(fit_cfg)))
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                   secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,
-                  config=replace(config.fit, device=config.device))
+                  config=fit_cfg, checkpoint=checkpoint if fit_cfg.method == "direct" else None)
     timings["fitting_s"] = time.perf_counter() - t
+    if checkpoint.loaded is not None:
+        resumed.append(f"fitting ({checkpoint.loaded})")
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
                    name=f"reconstruction of {session.sample}")
     out.write_maps(maps)
@@ -243,9 +251,30 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
                "grid": {"resolution": grid.resolution, "size_mm": grid.size_mm},
                "texels": int(meas.valid.size), "holdout_line": hold, "timings_s": timings,
                "finetune": _jsonable(ft_info), "resumed": resumed,
+               "fit": _jsonable({k: v for k, v in fit.info.items() if k != "texel_loss"}),
                "alignment": _jsonable(alignment.info)}
     out.write_summary(summary)
     return Reconstruction(out.dir, meas, latent, maps, hold, timings, alignment, model)
+
+
+class _Checkpoint:
+    """A long stage's unfinished state in the stage folder under that stage's key (the checkpoints of
+    reconstruction.finetune.finetune and reconstruction.fitting._fit_direct; the files are reconstruction/output.py's,
+    the stages output.PARTIAL_STAGES). `loaded`: the phase a killed run had reached, if any."""
+
+    def __init__(self, stages: ReconstructionFolder, stage: str, key: str):
+        self.stages, self.stage, self.key, self.loaded = stages, stage, key, None
+
+    def load(self) -> dict | None:
+        if self.stages.finished_stage(self.stage, self.key) is None:
+            return None
+        state = self.stages.state(self.stage)
+        self.loaded = state.get("phase")
+        return state
+
+    def save(self, state: dict) -> None:
+        self.stages.write_state(self.stage, state)
+        self.stages.record_stage(self.stage, self.key, {"phase": state["phase"]})
 
 
 def _with_holdout(cfg, hold: int, device):
