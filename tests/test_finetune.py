@@ -348,3 +348,36 @@ def test_decoded_lumitexels_at_once_or_chunk_by_chunk(net):
     np.testing.assert_array_equal(source(idx).numpy(), whole[[5, 0, 3]])
     with pytest.raises(ValueError, match="latent72 must be finite"):
         decoded_lumitexels(net, np.full_like(lat, np.nan))
+
+
+def test_killed_fine_tuning_resumes_to_the_same_latents(net, weights, problem, tmp_path, monkeypatch):
+    """Stopped after any batch of any pass (tests/test_stage_resume.py's checkpoint, through the stage folder's file),
+    fine-tuning resumed on its saved state ends with the latents, histories and objectives of an uninterrupted run."""
+    import reconstruction.finetune as finetuning
+    from test_stage_resume import _Killed, _Stopping
+
+    monkeypatch.setattr(finetuning, "CHECKPOINT_SECONDS", 0.0)  # a save after every batch
+    start, lines, _ = problem
+    cfg = FinetuneConfig(batch=10, iterations=(6, 4, 6))  # 3 batches a pass, the released early stopping
+
+    def run(checkpoint=None):
+        return finetune(net, start, lines, weights, cfg, checkpoint=checkpoint)
+
+    whole = run()
+    record = _Stopping(tmp_path / "all", stage="finetune_state")
+    run(record)
+    assert record.phases == ["pass1"] * 2 + ["pass2"] * 3 + ["pass3"] * 3 + ["done"], record.phases
+    for at in (1, 3, 5, 7, 9):  # inside pass 1; the first batch of pass 2; the ends of passes 2 and 3
+        folder = tmp_path / f"kill{at}"
+        with pytest.raises(_Killed):
+            run(_Stopping(folder, at, stage="finetune_state"))
+        again = _Stopping(folder, stage="finetune_state")
+        res = run(again)
+        assert again.loaded == record.phases[at - 1]
+        for p in PASSES:
+            assert np.array_equal(res.passes[p], whole.passes[p]), (at, p)
+        assert res.history == whole.history and res.iterations == whole.iterations
+        assert res.objective == whole.objective
+    with pytest.raises(ValueError, match="does not belong to this fine-tuning"):
+        finetune(net, start[:5], lines[:5], weights, cfg, checkpoint=_Stopping(tmp_path / "kill3",
+                                                                               stage="finetune_state"))

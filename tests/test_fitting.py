@@ -69,6 +69,22 @@ def _targets(rig, p, device="cpu"):
     return m.astype(np.float32), np.einsum("plc,klc->pkc", m, w).astype(np.float32), w
 
 
+def weak_beside_glossy(rig, grid_shape, size_mm: float, weak_columns: int, weak_alpha_y: float):
+    """Flat texels of an R x C grid over size_mm: the first `weak_columns` columns a rough, weak lobe on a bright
+    diffuse (paper stock: alpha_x 0.45, alpha_y `weak_alpha_y`, rho_s 0.3 on rho_d 0.8), the rest a glossy dark ink
+    (alpha 0.12, rho_s 3 on rho_d 0.1). Returns (parameters, the weak texels' mask)."""
+    from twin.materials.samples import grid_positions
+
+    R, C = grid_shape
+    pos = grid_positions(size_mm, (R, C), rig.sample).reshape(-1, 3)
+    weak = np.repeat(np.arange(C)[None] < weak_columns, R, 0).ravel()
+    n = len(pos)
+    return {"position": pos, "normal": np.tile([0.0, 0.0, 1.0], (n, 1)), "tangent": np.tile([1.0, 0.0, 0.0], (n, 1)),
+            "alpha_x": np.where(weak, 0.45, 0.12), "alpha_y": np.where(weak, weak_alpha_y, 0.12),
+            "rho_d": np.where(weak[:, None], 0.8, 0.1) * np.ones((n, 3)),
+            "rho_s": np.where(weak, 0.3, 3.0)[:, None] * np.ones((n, 3))}, weak
+
+
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
@@ -249,16 +265,9 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     issue #14) and lumitexels with 2%. Each texel alone errs on the weak lobe's alpha; the joint prior (FitConfig.alpha_prior)
     pools its photos and meets the 10% goal there, while the glossy texels keep their own alpha (the prior
     does not reach across the change of colour)."""
-    from twin.materials.samples import grid_positions
-
     R, C = 6, 8
-    pos = grid_positions(60.0, (R, C), mini.sample).reshape(-1, 3)
-    weak = np.repeat(np.arange(C)[None] < 5, R, 0).ravel()
-    n = len(pos)
-    p = {"position": pos, "normal": np.tile([0.0, 0.0, 1.0], (n, 1)), "tangent": np.tile([1.0, 0.0, 0.0], (n, 1)),
-         "alpha_x": np.where(weak, 0.45, 0.12), "alpha_y": np.where(weak, 0.45, 0.12),
-         "rho_d": np.where(weak[:, None], 0.8, 0.1) * np.ones((n, 3)), "rho_s": np.where(weak, 0.3, 3.0)[:, None]
-         * np.ones((n, 3))}
+    p, weak = weak_beside_glossy(mini, (R, C), 60.0, 5, 0.45)
+    pos = p["position"]
     m, lines, w = _targets(mini, p, device)
     rng = np.random.default_rng(7)
     noisy = lines * (1 + 0.004 * rng.standard_normal(lines.shape)).astype(np.float32)

@@ -2,22 +2,19 @@
 reconstruction.fitting._fit_direct): stopped after any of their saves (a batch of a pass; a chunk, a propagation
 round, a step of the joint prior) and run again on the state saved, through the stage folder's files
 (reconstruction/output.py, reconstruction.pipeline._Checkpoint), they end with the same numbers, to the bit, as a
-run that was never stopped. A tampered state is not used; a state of another problem is refused in one line."""
+run that was never stopped. A tampered state is not used; a state of another problem is refused in one line.
+Fine-tuning's test is in tests/test_finetune.py (its fixtures), with the checkpoint defined here."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import reconstruction.finetune as finetuning
 import reconstruction.fitting as fitting
-from reconstruction.finetune import PASSES, FinetuneConfig, finetune
 from reconstruction.fitting import FitConfig, fit_ggx
 from reconstruction.output import FIT_STATE, ReconstructionFolder
 from reconstruction.pipeline import _Checkpoint
-from twin.materials.samples import grid_positions
 
-from test_finetune import net, problem as ft_problem, weights  # noqa: F401 - fixtures
-from test_fitting import _targets
+from test_fitting import _targets, weak_beside_glossy
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -47,13 +44,8 @@ class _Stopping(_Checkpoint):
 @pytest.fixture(scope="module")
 def problem(mini):
     """A weak rough lobe beside a glossy ink (tests/test_fitting.py's joint-prior grid, smaller), noisy lines."""
-    pos = grid_positions(50.0, (R, C), mini.sample).reshape(-1, 3)
-    weak = np.repeat(np.arange(C)[None] < 3, R, 0).ravel()
-    n = len(pos)
-    p = {"position": pos, "normal": np.tile([0.0, 0.0, 1.0], (n, 1)), "tangent": np.tile([1.0, 0.0, 0.0], (n, 1)),
-         "alpha_x": np.where(weak, 0.45, 0.12), "alpha_y": np.where(weak, 0.3, 0.12),
-         "rho_d": np.where(weak[:, None], 0.8, 0.1) * np.ones((n, 3)), "rho_s": np.where(weak, 0.3, 3.0)[:, None]
-         * np.ones((n, 3))}
+    p, _ = weak_beside_glossy(mini, (R, C), 50.0, 3, 0.3)
+    pos = p["position"]
     m, lines, w = _targets(mini, p)
     rng = np.random.default_rng(3)
     return pos, m, (lines * (1 + 0.004 * rng.standard_normal(lines.shape))).astype(np.float32), w
@@ -116,31 +108,3 @@ def test_a_tampered_or_foreign_state(mini, problem, tmp_path, monkeypatch):
         fit_ggx(mini, pos, m, lines=lines, line_weights=w, grid_shape=(R, C),
                 config=FitConfig(method="neural", iterations=1), checkpoint=Foreign())
 
-
-def test_killed_fine_tuning_resumes_to_the_same_latents(net, weights, ft_problem, tmp_path,  # noqa: F811
-                                                         monkeypatch):
-    monkeypatch.setattr(finetuning, "CHECKPOINT_SECONDS", 0.0)  # a save after every batch
-    start, lines, _ = ft_problem
-    cfg = FinetuneConfig(batch=10, iterations=(6, 4, 6))  # 3 batches a pass, the released early stopping
-
-    def run(checkpoint=None):
-        return finetune(net, start, lines, weights, cfg, checkpoint=checkpoint)
-
-    whole = run()
-    record = _Stopping(tmp_path / "all", stage="finetune_state")
-    run(record)
-    assert record.phases == ["pass1"] * 2 + ["pass2"] * 3 + ["pass3"] * 3 + ["done"], record.phases
-    for at in (1, 3, 5, 7, 9):  # inside pass 1; the first batch of pass 2; the ends of passes 2 and 3
-        folder = tmp_path / f"kill{at}"
-        with pytest.raises(_Killed):
-            run(_Stopping(folder, at, stage="finetune_state"))
-        again = _Stopping(folder, stage="finetune_state")
-        res = run(again)
-        assert again.loaded == record.phases[at - 1]
-        for p in PASSES:
-            assert np.array_equal(res.passes[p], whole.passes[p]), (at, p)
-        assert res.history == whole.history and res.iterations == whole.iterations
-        assert res.objective == whole.objective
-    with pytest.raises(ValueError, match="does not belong to this fine-tuning"):
-        finetune(net, start[:5], lines[:5], weights, cfg, checkpoint=_Stopping(tmp_path / "kill3",
-                                                                               stage="finetune_state"))
