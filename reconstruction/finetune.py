@@ -514,7 +514,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
                  "rgb3": np.zeros(tuple(passes["pass0"].shape), np.float32),
                  **{k: {p: [] for p in PASSES[1:]} for k in ("history", "iterations")},
                  **{k: {p: 0.0 for p in PASSES[1:]} for k in ("before", "after", "seconds")}}
-    grey1, rgb2, rgb3 = (torch.from_numpy(np.array(state[k], np.float32)) for k in ("grey1", "rgb2", "rgb3"))
+    grey1, rgb2, rgb3 = (torch.from_numpy(np.asarray(state[k], np.float32)) for k in ("grey1", "rgb2", "rgb3"))
     history, iterations, before, after, seconds = (state[k] for k in ("history", "iterations", "before", "after",
                                                                     "seconds"))
     problems = [_Problem(model, y[sl].to(dev), w_dev, ad, eps) for sl in slices]
@@ -548,8 +548,6 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
             _sync(dev)
             seconds[PASSES[p]] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            if p == 2 and b == len(slices) - 1:
-                rgb2[:, 3 * ad:] = grey1[:, ad:]
             finished(first + b, b == len(slices) - 1)
 
     with _frozen(model), torch.enable_grad():
@@ -560,6 +558,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
             a1, s1 = grey1[sl, :ad].to(dev), grey1[sl, ad:].to(dev)
             for c in range(3):
                 rgb2[sl, c * ad:(c + 1) * ad] = track("pass2", a1, (lambda a, c=c: pb.e2(a, s1, c)), 1)
+            rgb2[sl, 3 * ad:] = grey1[sl, ad:]
 
         def pass3(sl, pb):  # the joint 72-D latent against the RGB photos, W[..., c]
             rgb3[sl] = track("pass3", rgb2[sl].to(dev), pb.e3, 2)

@@ -48,6 +48,11 @@ STAGE_FILES = {"alignment": (ALIGNMENT,), "extraction": (MEASUREMENTS,), "finetu
 PARTIAL_STAGES = ("finetune_state", "fit_state")  # a stage's unfinished state (module docstring)
 
 
+def _partial(stage: str) -> None:
+    if stage not in PARTIAL_STAGES:
+        raise ValueError(f"{stage!r} keeps no unfinished state; the stages that do: {PARTIAL_STAGES}")
+
+
 def stages_folder(out) -> Path:
     """Where `reconstruct` keeps the finished stages of OUT until OUT is complete (module docstring)."""
     out = Path(out)
@@ -179,6 +184,7 @@ class ReconstructionFolder:
     def write_state(self, stage: str, state: dict) -> None:
         """An unfinished stage's state (PARTIAL_STAGES; a dict of numpy arrays, JSON-able values and such dicts):
         the arrays by their dotted names, the rest as JSON in `__meta__`."""
+        _partial(stage)
         arrays = {}
 
         def split(d: dict, prefix: str) -> dict:
@@ -195,6 +201,7 @@ class ReconstructionFolder:
 
     def state(self, stage: str) -> dict:
         """The state written by write_state."""
+        _partial(stage)
         with np.load(self.dir / STAGE_FILES[stage][0], allow_pickle=False) as z:
             state = json.loads(z["__meta__"].tobytes())
             for name in z.files:

@@ -103,6 +103,8 @@ def test_a_tampered_or_foreign_state(mini, problem, tmp_path, monkeypatch):
 
     with pytest.raises(ValueError, match="does not belong to this fit"):
         _fit(mini, problem, Foreign())
+    with pytest.raises(ValueError, match="keeps no unfinished state"):
+        ReconstructionFolder(folder).write_state("alignment", {"phase": "x"})
     pos, m, lines, w = problem
     with pytest.raises(ValueError, match="direct method only"):
         fit_ggx(mini, pos, m, lines=lines, line_weights=w, grid_shape=(R, C),
