@@ -76,7 +76,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .network import PRECISIONS, AcquisitionNet, _is_int, _is_real
+from .network import AcquisitionNet, _is_int, _is_real
 
 __all__ = ["FinetuneConfig", "FinetuneResult", "EarlyStopRule", "EARLY_STOP", "SOURCES", "PASSES", "finetune",
            "simulate_lines", "decode_rgb", "decoded_lumitexels", "grey_to_rgb"]
@@ -144,10 +144,6 @@ class FinetuneConfig:
     holdout         line indices left out of the objective (the paper holds out 1 of 64; code: none).
     sqrt_eps        eps inside the square roots of the objective, network units (ours; module docstring).
     device          torch device of the optimisation ("cpu", "cuda", "cuda:1", ...); the model must be on it.
-    precision       the decoder's matrix products inside the passes' objectives (reconstruction.network.PRECISIONS):
-                    "float32" (default), or "split_tf32": split-precision products on TF32 tensor cores with
-                    float32-level accuracy (network.split_tf32_linear). simulate_lines, decode_rgb and
-                    decoded_lumitexels always decode in float32.
     """
 
     source: str = "code"
@@ -158,7 +154,6 @@ class FinetuneConfig:
     holdout: tuple[int, ...] = ()
     sqrt_eps: float = 1e-6
     device: str = "cpu"
-    precision: str = "float32"
 
     def __post_init__(self):
         if self.source not in SOURCES:
@@ -187,8 +182,6 @@ class FinetuneConfig:
             torch.device(self.device)
         except (RuntimeError, TypeError) as e:
             raise ValueError(f"FinetuneConfig.device is not a torch device: {self.device!r}") from e
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"FinetuneConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
 
     @property
     def caps(self) -> tuple[int, int, int]:
@@ -287,18 +280,17 @@ def grey_to_rgb(latent: np.ndarray, albedo_dim: int = 8) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ simulation
 
 
-def _decode_rgb(model, x72: torch.Tensor, ad: int, precision: str = "float32") -> torch.Tensor:
-    """(B, 3 ad + sd) -> (3, B, L) lumitexels: channel c decodes (a_c, s) (reference §3.3), the decoder's products
-    in `precision` (FinetuneConfig.precision)."""
+def _decode_rgb(model, x72: torch.Tensor, ad: int) -> torch.Tensor:
+    """(B, 3 ad + sd) -> (3, B, L) lumitexels: channel c decodes (a_c, s) (reference §3.3)."""
     b = x72.shape[0]
     albedo = x72[:, :3 * ad].reshape(b, 3, ad).transpose(0, 1).reshape(3 * b, ad)
     shape = x72[:, 3 * ad:].repeat(3, 1)
-    return model.decode_lumitexel(albedo, shape, precision).reshape(3, b, -1)
+    return model.decode_lumitexel(albedo, shape).reshape(3, b, -1)
 
 
-def _sim_rgb(model, x72: torch.Tensor, w_lkc: torch.Tensor, ad: int, precision: str = "float32") -> torch.Tensor:
+def _sim_rgb(model, x72: torch.Tensor, w_lkc: torch.Tensor, ad: int) -> torch.Tensor:
     """M_sim (B, K, 3) = sum_l W[k, l, c] m_c[l]; w_lkc is the weights as (3, L, K)."""
-    return torch.bmm(_decode_rgb(model, x72, ad, precision), w_lkc).permute(1, 2, 0)
+    return torch.bmm(_decode_rgb(model, x72, ad), w_lkc).permute(1, 2, 0)
 
 
 def simulate_lines(model, latent72, line_weights, batch: int | None = 16384) -> np.ndarray:
@@ -383,26 +375,25 @@ def _energy(sim: torch.Tensor, target_sqrt: torch.Tensor, eps: float) -> torch.T
 
 
 class _Problem:
-    """The three objectives on one batch (device tensors); holdout lines already removed. precision: the decoder's
-    (FinetuneConfig.precision)."""
+    """The three objectives on one batch (device tensors); holdout lines already removed."""
 
-    def __init__(self, model, lines: torch.Tensor, w: torch.Tensor, ad: int, eps: float, precision: str):
-        self.model, self.ad, self.eps, self.precision = model, ad, eps, precision
+    def __init__(self, model, lines: torch.Tensor, w: torch.Tensor, ad: int, eps: float):
+        self.model, self.ad, self.eps = model, ad, eps
         self.w0 = w[..., 0].T.contiguous()              # (L, K): W[..., 0], passes 1 and 2
         self.w_lkc = w.permute(2, 1, 0).contiguous()     # (3, L, K): W[..., c], pass 3
         self.grey_t = _target_sqrt(lines.mean(dim=2), eps)   # pass 1: mean over RGB of the photos
         self.rgb_t = _target_sqrt(lines, eps)                # passes 2 (one channel) and 3
 
     def e1(self, x56: torch.Tensor) -> torch.Tensor:
-        m = self.model.decode_lumitexel(x56[:, :self.ad], x56[:, self.ad:], self.precision)
+        m = self.model.decode_lumitexel(x56[:, :self.ad], x56[:, self.ad:])
         return _energy(m @ self.w0, self.grey_t, self.eps)
 
     def e2(self, a: torch.Tensor, s: torch.Tensor, c: int) -> torch.Tensor:
-        m = self.model.decode_lumitexel(a, s, self.precision)
+        m = self.model.decode_lumitexel(a, s)
         return _energy(m @ self.w0, self.rgb_t[..., c], self.eps)
 
     def e3(self, x72: torch.Tensor) -> torch.Tensor:
-        return _energy(_sim_rgb(self.model, x72, self.w_lkc, self.ad, self.precision), self.rgb_t, self.eps)
+        return _energy(_sim_rgb(self.model, x72, self.w_lkc, self.ad), self.rgb_t, self.eps)
 
 
 def _adam_run(x0: torch.Tensor, energy, steps: int, lr: float, rule: EarlyStopRule | None):
@@ -526,7 +517,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
     grey1, rgb2, rgb3 = (torch.from_numpy(np.asarray(state[k], np.float32)) for k in ("grey1", "rgb2", "rgb3"))
     history, iterations, before, after, seconds = (state[k] for k in ("history", "iterations", "before", "after",
                                                                     "seconds"))
-    problems = [_Problem(model, y[sl].to(dev), w_dev, ad, eps, config.precision) for sl in slices]
+    problems = [_Problem(model, y[sl].to(dev), w_dev, ad, eps) for sl in slices]
 
     def track(name, x0, energy, i):
         """One Adam run of pass `name` (index i) from x0; records the objective, history and iterations."""

@@ -53,10 +53,6 @@ Which view is decoded: the primary view (index 0), as in the paper ("output: the
 lumitexel"). Units of m: whatever the training data uses (the released pipeline's photo units); the log
 encoding makes the loss scale-aware, so train in the units the capture delivers.
 
-Precision (`PRECISIONS`, fine-tuning's `FinetuneConfig.precision`): the decoder's linear layers run as plain float32
-products ("float32", the default) or as split-precision products ("split_tf32", `split_tf32_linear`) that use TF32
-tensor cores on CUDA and keep float32-level accuracy.
-
 No Warp here: pure torch (the lumitexels come from `twin` outside this module).
 """
 from __future__ import annotations
@@ -68,13 +64,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from twin.optics.tf32 import tf32_matmul
-
 __all__ = [
     "NetworkConfig", "REFERENCE_NUM_LEDS", "REFERENCE_DECODER_WIDTHS", "REFERENCE_ALBEDO_HIDDEN",
     "REFERENCE_SHAPE_HIDDEN", "ARCHITECTURES", "decoder_widths", "encoder_widths", "PatternLayer", "Encoder", "Decoder",
-    "AcquisitionNet", "lumitexel_loss", "albedo_swap_loss", "log_to_lumitexel", "count_parameters", "PRECISIONS",
-    "split_tf32_linear",
+    "AcquisitionNet", "lumitexel_loss", "albedo_swap_loss", "log_to_lumitexel", "count_parameters",
 ]
 
 REFERENCE_NUM_LEDS = 12 * 1024
@@ -87,7 +80,6 @@ COMPACT_TRUNK = 5     # compact decoder: the released decoder's first five hidde
 COMPACT_RANK = 256    # compact decoder: the factorised output layer's rank at L = 12,288
 COMPACT_ENCODER = 0.5  # compact encoder: the released branches' hidden widths times this
 LEVELS = 255  # 8-bit LED drive (paper §5)
-PRECISIONS = ("float32", "split_tf32")  # the decoder's linear layers: plain float32, or split_tf32_linear
 
 
 def _is_int(x) -> bool:
@@ -385,87 +377,6 @@ class Encoder(nn.Module):
         return self.albedo_branch(x), self.shape_branch(x)
 
 
-# ------------------------------------------------------------------------------------------------ precision
-
-# Split precision ("3xTF32": NVIDIA CUTLASS's 3xTF32 GEMMs; Ootomo & Yokota 2022, "Recovering single precision
-# accuracy from Tensor Cores while surpassing the FP32 theoretical peak performance"). A float32 a is split exactly as
-# a = a_hi + a_lo: a_hi keeps the top 10 of the 23 stored mantissa bits (the low 13 zeroed), so it is a TF32 number
-# and the tensor cores read it without error; a_lo = a - a_hi is exact in float32 and |a_lo| < 2^-10 |a|. Then
-#     a b = a_hi b_hi + a_hi b_lo + a_lo b_hi + a_lo b_lo,
-# and the three products run as TF32 GEMMs with float32 accumulation; the fourth is dropped. Error per term of the
-# product's sum, relative to |a||b|: the dropped a_lo b_lo < 2^-20; TF32 keeps 11 significant bits of a lo, whose
-# bits are a's low 13, so it drops at most a's last two bits (truncated: < 2^-21 |a|), and each of the two cross terms
-# is off by < 2^-21 (the hi x hi products, 11 x 11 bits, are exact in float32). Together < 2^-19 |a||b| per term
-# (Ootomo & Yokota's version rounds instead of truncating and scales a_lo to avoid underflow; this one keeps the
-# bit mask simple), so the result is off by at most
-#     (2^-19 + (k + 2) 2^-24) sum_i |x_i||w_i|        (k = in_features; the second part float32 accumulation)
-# (SPLIT_TF32_RTOL x that sum for k <= 64), where plain TF32 is off by ~2^-10 relative. On the CPU (or with
-# allow_tf32 off) the three products are ordinary float32 GEMMs and only the dropped a_lo b_lo term and rounding
-# differ from a float32 product. Not handled: inf (a_lo = inf - inf = nan) and float32 subnormals (a_lo may
-# underflow in TF32); the decoder's activations and weights are finite and far from both.
-SPLIT_TF32_RTOL = 2.0 ** -19 + 66 * 2.0 ** -24   # the bound above for k = 64, relative to sum_i |x_i||w_i|
-
-
-def _split(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """float32 a -> (a_hi, a_lo): a_hi = a with the low 13 mantissa bits zeroed (a TF32 number), a_lo = a - a_hi."""
-    hi = (a.view(torch.int32) & ~0x1FFF).view(torch.float32)
-    return hi, a - hi
-
-
-def _split_mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """a @ b as hi@hi + (hi@lo + lo@hi) with TF32 allowed, for float32 a, b; the plain product for other dtypes
-    (float64: nothing to split)."""
-    if a.dtype != torch.float32 or b.dtype != torch.float32:
-        return a @ b
-    (a_hi, a_lo), (b_hi, b_lo) = _split(a), _split(b)
-    with tf32_matmul(True):
-        return a_hi @ b_hi + (a_hi @ b_lo + a_lo @ b_hi)
-
-
-class _SplitTF32Linear(torch.autograd.Function):
-    """x @ weight.T + bias with every product (forward and backward) a `_split_mm`."""
-
-    @staticmethod
-    def forward(ctx, x, weight, bias):
-        ctx.save_for_backward(x, weight)
-        ctx.has_bias = bias is not None
-        out = _split_mm(x, weight.T)
-        return out + bias if bias is not None else out
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        x, weight = ctx.saved_tensors
-        need_x, need_w, need_b = ctx.needs_input_grad
-        grad_x = _split_mm(grad_out, weight) if need_x else None
-        g2 = grad_out.reshape(-1, grad_out.shape[-1])
-        grad_w = _split_mm(g2.T, x.reshape(-1, x.shape[-1])) if need_w else None
-        grad_b = g2.sum(0) if need_b and ctx.has_bias else None
-        return grad_x, grad_w, grad_b
-
-
-def split_tf32_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
-    """torch.nn.functional.linear(x, weight, bias) with split-precision ("3xTF32") products: TF32 tensor cores on
-    CUDA, float32-level accuracy (error bound above); differentiable (the backward products are split too). float64
-    inputs give the plain product (torch.autograd.gradcheck). Sets torch's TF32 flag only inside its products."""
-    return _SplitTF32Linear.apply(x, weight, bias)
-
-
-def _check_precision(precision) -> None:
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-
-
-def _apply_split(module: nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """module(x) with every nn.Linear in it (nested Sequentials included) applied by split_tf32_linear."""
-    if isinstance(module, nn.Sequential):
-        for m in module:
-            x = _apply_split(m, x)
-        return x
-    if isinstance(module, nn.Linear):
-        return split_tf32_linear(x, module.weight, module.bias)
-    return module(x)
-
-
 # ------------------------------------------------------------------------------------------------ decoder
 
 
@@ -481,8 +392,7 @@ class Decoder(nn.Module):
     last, dropout after every layer except the last (paper §6), no BatchNorm (as released), Xavier
     initialisation (uniform, LeakyReLU gain, zero bias). The compact architecture ends in the factorised
     output layer instead: its bottleneck layer has neither activation nor dropout. The output is log(1 + m);
-    `decode_lumitexel` gives m = max(exp(out) - 1, 0). precision (PRECISIONS): "float32", or "split_tf32" for
-    `split_tf32_linear` products in every linear layer.
+    `decode_lumitexel` gives m = max(exp(out) - 1, 0).
     """
 
     def __init__(self, config: NetworkConfig):
@@ -496,14 +406,13 @@ class Decoder(nn.Module):
             self.net = _mlp(self.widths, config.negative_slope, config.dropout, batchnorm=False)
         _xavier_(self, config.negative_slope)
 
-    def forward(self, latent: torch.Tensor, precision: str = "float32") -> torch.Tensor:
-        _check_precision(precision)
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
         if latent.ndim != 2 or latent.shape[1] != self.config.latent_dim:
             raise ValueError(f"latent must have shape (B, {self.config.latent_dim}), got {tuple(latent.shape)}")
-        return self.net(latent) if precision == "float32" else _apply_split(self.net, latent)
+        return self.net(latent)
 
-    def decode_lumitexel(self, latent: torch.Tensor, precision: str = "float32") -> torch.Tensor:
-        return log_to_lumitexel(self.forward(latent, precision))
+    def decode_lumitexel(self, latent: torch.Tensor) -> torch.Tensor:
+        return log_to_lumitexel(self.forward(latent))
 
 
 # ------------------------------------------------------------------------------------------------ network
@@ -516,9 +425,8 @@ class AcquisitionNet(nn.Module):
         shape (B, shape_dim), log_lumitexel (B, L)); the decoded lumitexel is the primary view's (view 0),
         so its training target is lumitexels[:, 0]. forward(m_a, pair_with=m_b) -> dict(swap_log_lumitexel
         = albedo_swap_forward(m_a, m_b)).
-    encode(measurements) -> (albedo, shape); decode(albedo, shape, precision="float32") -> log_lumitexel;
-    decode_lumitexel(albedo, shape, precision="float32") -> lumitexel (exp - 1, clamped >= 0); precision: the
-    decoder's (PRECISIONS, Decoder).
+    encode(measurements) -> (albedo, shape); decode(albedo, shape) -> log_lumitexel;
+    decode_lumitexel(albedo, shape) -> lumitexel (exp - 1, clamped >= 0).
     albedo_swap_forward(m_a, m_b) -> (B, 4, L): the four latent combinations of a pair (paper §6).
 
     Modules are built in the order pattern layer, encoder, decoder, so `torch.manual_seed(s)` before
@@ -540,11 +448,11 @@ class AcquisitionNet(nn.Module):
     def encode(self, measurements: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.encoder(measurements)
 
-    def decode(self, albedo: torch.Tensor, shape: torch.Tensor, precision: str = "float32") -> torch.Tensor:
-        return self.decoder(torch.cat([albedo, shape], dim=-1), precision)
+    def decode(self, albedo: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+        return self.decoder(torch.cat([albedo, shape], dim=-1))
 
-    def decode_lumitexel(self, albedo: torch.Tensor, shape: torch.Tensor, precision: str = "float32") -> torch.Tensor:
-        return log_to_lumitexel(self.decode(albedo, shape, precision))
+    def decode_lumitexel(self, albedo: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+        return log_to_lumitexel(self.decode(albedo, shape))
 
     def forward(self, lumitexels: torch.Tensor, pair_with: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         if pair_with is not None:  # the albedo-swap step through forward, so that DDP sees it (reconstruction.train)

@@ -1,5 +1,6 @@
 """Split-precision ("3xTF32") against float32 and plain TF32 fine-tuning on the paper rig (FinetuneConfig.precision,
-reconstruction.network.split_tf32_linear), to be run on an H100:
+reconstruction.network.split_tf32_linear), as run on an H100 (docs/performance.md, "Split-precision fine-tuning"). The
+option it measures was slower than float32 and was taken out again: run it at commit 6bf0afa, where it exists.
 
     python docs/bench/finetune_split_tf32_2026-11-26.py 65536 > finetune_split_tf32_paper_h100_65536_2026-11-26.json
 

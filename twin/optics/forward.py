@@ -28,7 +28,6 @@ import warp as wp
 from twin.optics import lumitexel as K
 from twin.optics.inputs import (CONVENTIONS, _device_inputs, _is_torch, _led_inputs, make_options, validate_patterns,
                                 validate_points)
-from twin.optics.tf32 import tf32_matmul
 
 
 def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *, convention="physical",
@@ -84,8 +83,13 @@ def project(m, w, tensor_cores: bool = False):
     block = torch.zeros(L, 3, Kn, 3, dtype=m.dtype, device=m.device)
     for c in range(3):
         block[:, c, :, c] = w[:, :, c].T
-    with tf32_matmul(tensor_cores):
+    cuda = torch.backends.cuda.matmul
+    before = cuda.allow_tf32
+    cuda.allow_tf32 = bool(tensor_cores)
+    try:
         return (m.reshape(P, 3 * L) @ block.reshape(3 * L, 3 * Kn)).view(P, Kn, 3)
+    finally:
+        cuda.allow_tf32 = before
 
 
 def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, patterns, *,
