@@ -793,10 +793,14 @@ def _initial(prob: _Problem):
 
 
 # --- the methods -----------------------------------------------------------------------------------------
+def _chunk_size(prob: _Problem, size: int | None) -> int:
+    """`size`, or None: as many texels as AUTO_CHUNK_PAIRS texel-LED pairs hold (at most all of them)."""
+    return size or min(prob.n, max(1, AUTO_CHUNK_PAIRS // max(prob.leds, 1)))
+
+
 def _chunks(prob: _Problem, size: int | None):
     """Contiguous texel index ranges of at most `size` (None: AUTO_CHUNK_PAIRS texel-LED pairs a range)."""
-    auto = max(1, AUTO_CHUNK_PAIRS // max(prob.leds, 1))
-    return torch.arange(prob.n, device=prob.pos.device).split(size or min(prob.n, auto))
+    return torch.arange(prob.n, device=prob.pos.device).split(_chunk_size(prob, size))
 
 
 def _result(prob: _Problem, geom: dict, rho_d, rho_s, history, t_start, info) -> FitResult:
@@ -1018,7 +1022,9 @@ def _propagate(prob: _Problem, q: torch.Tensor, grid_shape) -> tuple[torch.Tenso
         better = loss < best_loss
         best, best_loss = torch.where(better[:, None], cand, best), torch.where(better, loss, best_loss)
     moved = torch.nonzero(best_loss < own * (1 - 1e-3)).flatten()
-    for idx in (moved.split(prob.config.batch or moved.numel()) if moved.numel() else ()):
+    # restarted in chunks like every other pass: paper stock at 1024^2 restarts so many texels that all at once
+    # asked an H100 for 26 GB more than it had (2026-11-26)
+    for idx in (moved.split(_chunk_size(prob, prob.config.batch)) if moved.numel() else ()):
         q[idx] = _levenberg_marquardt(prob.part(idx), best[idx], np.zeros(prob.config.steps))
     return q, int(moved.numel())
 

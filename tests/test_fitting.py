@@ -13,6 +13,7 @@ import torch
 
 import twin
 from reconstruction.data import LUMITEXEL_SCALE, synthesize
+from reconstruction import fitting
 from reconstruction.fitting import FitConfig, FitResult, fit_ggx, fit_method, to_maps
 from twin.capture.pattern_sets import linear_lights
 from twin.materials.samples import SVBRDFMaps, read_maps, write_maps
@@ -313,3 +314,29 @@ def test_diffuse_normal_finds_a_steep_tilt(mini):
 
     assert deg(_diffuse_normal(prob)).max() < 1.0
     assert deg(_peak_normal(prob)).max() > 5.0
+
+
+def test_propagation_restarts_in_chunks(mini, fitted, monkeypatch):
+    """Neighbour propagation restarts its texels in the fit's chunks (AUTO_CHUNK_PAIRS texel-LED pairs), as every
+    other pass runs: paper stock at 1024^2 restarted so many texels that one Levenberg-Marquardt over all of them
+    asked an H100 for 26 GB more than it had (2026-11-26). The chunks restart the same texels to the same numbers."""
+    truth, (m, lines, w), _ = fitted
+    prob = fitting._problem(mini, truth["position"], m, lines, w, GRID, FitConfig(iterations=3), None)
+    rng = np.random.default_rng(3)  # scattered numbers: many texels find a neighbour's better and restart
+    q = torch.as_tensor(rng.normal(0.0, 0.5, (prob.n, fitting.GEOMETRY_SIZE)), dtype=prob.pos.dtype)
+    sizes, lm = [], fitting._levenberg_marquardt
+
+    def spy(part, q0, history):
+        sizes.append(part.n)
+        return lm(part, q0, history)
+
+    monkeypatch.setattr(fitting, "_levenberg_marquardt", spy)
+    whole, moved = fitting._propagate(prob, q.clone(), GRID)
+    assert sizes == [moved] and moved >= 3
+    monkeypatch.setattr(fitting, "AUTO_CHUNK_PAIRS", 2 * prob.leds)
+    sizes.clear()
+    chunked, moved_chunked = fitting._propagate(prob, q.clone(), GRID)
+    assert moved_chunked == moved and max(sizes) == 2 and sum(sizes) == moved
+    # float32 products of other sizes round differently (measured: 9e-6 at most); a texel written back to the wrong
+    # place would be off by the numbers' own scale, ~0.5
+    np.testing.assert_allclose(chunked.numpy(), whole.numpy(), rtol=0, atol=1e-3)
