@@ -12,7 +12,7 @@ def cmd_reconstruct(args) -> int:
 
     over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm),
                               ("holdout_line", args.holdout_line), ("network", args.network),
-                              ("device", args.device)) if v is not None}
+                              ("device", args.device), ("footprint", args.footprint)) if v is not None}
     r = reconstruct(args.capture, args.output, replace(ReconstructConfig(), **over), progress=not args.no_progress)
     print(f"reconstruction: {r.directory} ({r.grid.resolution}^2 texels over {r.grid.size_mm:.1f} mm; "
           + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in r.timings.items()) + ")")
@@ -117,6 +117,9 @@ def register(sub) -> None:
     s.add_argument("--network", help=f"'pretrained' (the network shipped for the rig) or a `hemicube train` run "
                    f"folder (default: {rc.network})")
     s.add_argument("--device", help=f"torch/Warp device: cpu, cuda, cuda:N (default: {rc.device})")
+    s.add_argument("--footprint", choices=("cell", "point", "gaussian"), help="how a texel's photo value is read: "
+                   "the mean over its cell's pixels, the value at its centre, or after the reference's anti-aliasing "
+                   f"blur (default: {rc.footprint})")
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
 

@@ -15,15 +15,24 @@ photo 128 against the empty-board photo 130), as the largest centred square insi
 Per photo and camera (reference §6.3, with the differences stated):
   1. flat field and colour matrix (twin.camera.correction, from the rig's calibration): camera RGB -> the
      LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
-  2. with `anti_alias` only (off by default, ours): an anti-aliasing Gaussian matched to the texel footprint,
-     the reference's odd kernel width k = 2 ceil(d/2 + 1) - 1 with d the largest pixel step between adjacent
-     texels (only when d > 1.5 px). Why off: the GGX fit models the BRDF AT the texel centre, and the
-     Gaussian (sigma ~1.1 px for texels 2 px apart) mixes the neighbours' light in: a weak lobe next to a
-     glossy one took +1% of the bright lines from its neighbour's highlight (issue #14's paper, wallpaper).
-     Measured on the material suite (mini rig, 48², same captures, docs/accuracy.md): median normal error
-     halved where there is relief (wood 0.18 -> 0.08°, leather 0.20 -> 0.11°, wallpaper 0.31 -> 0.15°), alpha
-     better on 8 of 10 samples (wallpaper 7.5/9.4% -> 4.6/6.7%); a point sample is noisier, so rho_s got worse
-     on the weak lobes (fabric 10.2 -> 12.9%, paper 13.3 -> 16.4%), which the fit's prior then pools;
+  2. the texel's footprint in the photo (`footprint`, ours; one function per method, FOOTPRINTS):
+     "cell" (default): the mean over the largest odd square of pixels that, with step 3's bilinear lookup (1 px
+     more), stays inside the texel's cell: width k, the largest odd number with k + 1 <= d, d the smallest pixel
+     step between adjacent texels of that view. Why: a texel spanning many photosites is measured by all of
+     them rather than by the ~4 a bilinear lookup reads (the paper rig at 256^2: ~7 px a texel, ~50
+     photosites, so the photo's noise falls by about sqrt(k^2 / 4)), without taking in its neighbours' light.
+     Where texels are under 4 px apart (the mini rig's ~2 px; the paper rig at 1024^2, ~2.6 px) k is 1 and
+     nothing changes: "point".
+     "point": no filter, the value at the texel centre (step 3).
+     "gaussian": the reference's anti-aliasing Gaussian, odd width k = 2 ceil(d/2 + 1) - 1 with d the largest
+     pixel step between adjacent texels (only when d > 1.5 px). Why not the default: the GGX fit models the
+     BRDF AT the texel centre, and the Gaussian (sigma ~1.1 px for texels 2 px apart) mixes the neighbours'
+     light in: a weak lobe next to a glossy one took +1% of the bright lines from its neighbour's highlight
+     (issue #14's paper, wallpaper). Measured on the material suite (mini rig, 48², same captures,
+     docs/accuracy.md): without it the median normal error halved where there is relief (wood 0.18 -> 0.08°,
+     leather 0.20 -> 0.11°, wallpaper 0.31 -> 0.15°), alpha was better on 8 of 10 samples (wallpaper 7.5/9.4%
+     -> 4.6/6.7%); a point sample is noisier, so rho_s got worse on the weak lobes (fabric 10.2 -> 12.9%,
+     paper 13.3 -> 16.4%), which the fit's prior then pools;
   3. the value at the texel centre's projection, BILINEAR (the reference truncates to the pixel, a
      half-pixel bias), through the camera's own distortion (no separate undistortion pass: the projection
      already lands on the raw pixel);
@@ -196,38 +205,66 @@ def texture_grid(session: CaptureSession, rig, resolution: int, size_mm: float |
     return TextureGrid(int(resolution), float(size_mm))
 
 
-def _kernel_width(uv: np.ndarray, shape) -> int:
-    """Reference §6.1 step 4: odd width 2 ceil(d/2 + 1) - 1 from the largest pixel step d between adjacent
-    texels; 0 (no blur) when texels are under 1.5 px."""
+def _pixel_steps(uv: np.ndarray, shape) -> np.ndarray:
+    """The finite pixel distances between adjacent texels (both grid axes) of one view."""
     g = uv.reshape(*shape, 2)
-    steps = [np.linalg.norm(np.diff(g, axis=a), axis=-1) for a in (0, 1)]
-    d = max(float(np.nanmax(s)) if np.isfinite(s).any() else 0.0 for s in steps)
+    steps = np.concatenate([np.linalg.norm(np.diff(g, axis=a), axis=-1).ravel() for a in (0, 1)])
+    return steps[np.isfinite(steps)]
+
+
+def _cell_width(steps: np.ndarray) -> int:
+    """Step 2, "cell": the largest odd k with k + 1 <= d (d the smallest step); 0 (no filter) where k is 1."""
+    k = 2 * math.floor(float(steps.min()) / 2 - 1) + 1 if steps.size else 0
+    return k if k >= 3 else 0
+
+
+def _gaussian_width(steps: np.ndarray) -> int:
+    """Step 2, "gaussian" (reference §6.1 step 4): odd width 2 ceil(d/2 + 1) - 1 from the largest step d; 0 (no
+    blur) when texels are under 1.5 px."""
+    d = float(steps.max()) if steps.size else 0.0
     return 0 if d <= 1.5 else 2 * math.ceil(d / 2 + 1) - 1
 
 
-def _sample(img: np.ndarray, uv: np.ndarray, ksize: int) -> np.ndarray:
-    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at uv (N, 2), NaN outside the image
-    (exact weights: cv2.remap would quantise the sub-pixel position to 1/32 px)."""
+def _box(img: np.ndarray, k: int) -> np.ndarray:
     import cv2
 
+    return cv2.blur(img, (k, k), borderType=cv2.BORDER_REFLECT)
+
+
+def _gaussian(img: np.ndarray, k: int) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(img, (k, k), 0, borderType=cv2.BORDER_REFLECT)
+
+
+# step 2's methods: (the filter's width from a view's texel steps, the filter) (colour-science style dispatch)
+FOOTPRINTS = {"cell": (_cell_width, _box), "point": (lambda steps: 0, None), "gaussian": (_gaussian_width, _gaussian)}
+
+
+def _sample(img: np.ndarray, uv: np.ndarray, footprint: str = "point", ksize: int = 0) -> np.ndarray:
+    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at uv (N, 2), NaN outside the image, after
+    the footprint's filter of width ksize (none when 0) (exact weights: cv2.remap would quantise the sub-pixel
+    position to 1/32 px)."""
     from .alignment import bilinear
 
     if ksize:
-        img = cv2.GaussianBlur(img, (ksize, ksize), 0, borderType=cv2.BORDER_REFLECT)
+        img = FOOTPRINTS[footprint][1](img, ksize)
     return bilinear(img, uv[:, 0], uv[:, 1]).astype(np.float32)
 
 
 def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
     """Step 4: each texel's secondary pixel, the alignment map (H0, W0, 2) sampled bilinearly at its primary
     pixel (NaN where the map is unknown)."""
-    return _sample(alignment.map, uv_primary, 0)
+    return _sample(alignment.map, uv_primary)
 
 
-def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_alias: bool = False,
+def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "cell",
             progress: bool = False) -> Measurements:
-    """Per-texel measurements of a capture (module docstring; step 2 only with `anti_alias`)."""
+    """Per-texel measurements of a capture (module docstring; step 2's method: `footprint`, one of FOOTPRINTS)."""
     from .data import LUMITEXEL_SCALE
 
+    if footprint not in FOOTPRINTS:
+        raise ExtractionError(f"footprint must be one of {tuple(FOOTPRINTS)}, got {footprint!r}")
     if session.rig_digest != rig.digest():
         raise ExtractionError(f"{session.dir} was captured with another rig (digest {session.rig_digest}) than "
                               f"{rig.name!r} ({rig.digest()})")
@@ -237,7 +274,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_
     pos = grid.positions(rig)
     uv0, _ = cams[0].project(pos)
     uv1 = secondary_pixels(uv0, alignment)
-    k0, k1 = (_kernel_width(uv, grid.shape) if anti_alias else 0 for uv in (uv0, uv1))
+    k0, k1 = (FOOTPRINTS[footprint][0](_pixel_steps(uv, grid.shape)) for uv in (uv0, uv1))
     scale = np.float32(LUMITEXEL_SCALE)
 
     calibrations = [calibration_of(c, rig.flat_fields.get(c.name)) for c in cams]
@@ -253,7 +290,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, anti_
     shown = session.shown_patterns(0)
     learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]
 
-    views = ((uv0, k0), (uv1, k1))
+    views = ((uv0, footprint, k0), (uv1, footprint, k1))
 
     def sampled(job):
         k, c = job

@@ -38,12 +38,20 @@ class ReconstructConfig:
     # the line photo left out of fine-tuning for validation (the paper holds out 1 of 64, unnamed);
     # None: the brightest line over the sample (a dim line would score the sensor's noise, not the model)
     holdout_line: int | None = None
-    anti_alias: bool = False  # the reference's anti-aliasing blur before sampling (reconstruction.extraction, step 2)
+    # how a texel's photo value is read: "cell" (the mean over its cell's pixels), "point" or "gaussian" (the
+    # reference's anti-aliasing blur); reconstruction.extraction, step 2
+    footprint: str = "cell"
     network: str = "pretrained"    # "pretrained" (shipped for this rig) or a `hemicube train` run folder
     device: str = "cpu"
     align: AlignConfig = field(default_factory=AlignConfig)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     fit: FitConfig = field(default_factory=FitConfig)
+
+    def __post_init__(self):
+        from .extraction import FOOTPRINTS
+
+        if self.footprint not in FOOTPRINTS:
+            raise ValueError(f"ReconstructConfig.footprint must be one of {tuple(FOOTPRINTS)}, got {self.footprint!r}")
 
 
 @dataclass
@@ -183,14 +191,14 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         done("alignment", key, t, info=alignment.info)
     stages.link_stage("alignment", out)
 
-    key = _key(key, config.resolution, config.size_mm, config.anti_alias)
+    key = _key(key, config.resolution, config.size_mm, config.footprint)
     if finished("extraction", key) is not None:
         meas = stages.measurements()
         grid = meas.grid
     else:
         t = stage("extraction")
         grid = texture_grid(session, rig, config.resolution, config.size_mm)
-        meas = extract(session, rig, grid, alignment, anti_alias=config.anti_alias, progress=progress)
+        meas = extract(session, rig, grid, alignment, footprint=config.footprint, progress=progress)
         if not meas.valid.all():  # the grid lies inside the sample, which both views see whole
             raise ValueError(f"{session.dir}: {int((~meas.valid).sum())} of the {grid.resolution}^2 texels are not "
                              "seen by both cameras (or their photos are not finite); choose a smaller --size-mm")

@@ -164,3 +164,64 @@ def test_bad_captures_are_refused(extracted, mini, tmp_path):
         extract(cap, twin.load_rig("paper"), grid, _ExactAlignment(mini))
     with pytest.raises(ExtractionError, match="grid resolution"):
         TextureGrid(1, 10.0)
+    with pytest.raises(ExtractionError, match="footprint must be one of"):
+        extract(cap, mini, grid, _ExactAlignment(mini), footprint="box")
+
+
+def test_footprint_widths():
+    """Step 2's filter widths from a view's texel steps: "cell" the largest odd k with k + 1 <= d, d the smallest
+    step (none where that is 1: texels under 4 px apart, the mini rig's ~2 px); "gaussian" the reference's
+    2 ceil(d/2 + 1) - 1 of the largest step, none at 1.5 px or less; "point" none."""
+    from reconstruction.extraction import FOOTPRINTS
+
+    cell, gaussian, point = (FOOTPRINTS[f][0] for f in ("cell", "gaussian", "point"))
+    for d, k in ((2.2, 0), (3.99, 0), (4.0, 3), (5.99, 3), (6.0, 5), (7.4, 5), (8.0, 7)):
+        assert cell(np.array([d + 3.0, d, d + 1.0])) == k, d
+    for d, k in ((1.5, 0), (2.2, 5), (7.4, 9)):
+        assert gaussian(np.array([1.0, d])) == k, d
+    assert cell(np.array([])) == gaussian(np.array([])) == point(np.array([8.0])) == 0
+
+
+def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
+    """Closed form: texels 8 px apart on an image that is constant over each texel's cell (another value per
+    cell), centres between pixels as a grid's fall. "cell" (a 7 px box, then the bilinear lookup) returns each
+    cell's own value exactly, and with iid pixel noise sigma its error has the standard deviation of the weights'
+    norm, sigma (6.5 / 49) (two overlapping 7 px boxes a side) against sigma / 2 at the centre alone ("point");
+    the reference's Gaussian (9 px) takes the neighbours' values in."""
+    from reconstruction.extraction import FOOTPRINTS, _pixel_steps, _sample
+
+    R, d, sigma = 16, 8, 0.1
+    rng = np.random.default_rng(0)
+    cells = rng.uniform(1.0, 2.0, (R, R))
+    img = np.kron(cells, np.ones((d, d)))[..., None].repeat(3, axis=2).astype(np.float32)
+    jj, ii = np.meshgrid(np.arange(R), np.arange(R))
+    uv = np.stack([jj.ravel() * d + (d - 1) / 2, ii.ravel() * d + (d - 1) / 2], axis=1)
+    steps = _pixel_steps(uv, (R, R))
+    inner = ((ii > 0) & (ii < R - 1) & (jj > 0) & (jj < R - 1)).ravel()  # away from the image's border
+
+    def read(footprint, image):
+        return _sample(image, uv, footprint, FOOTPRINTS[footprint][0](steps))[:, 0] - cells.ravel()
+
+    assert FOOTPRINTS["cell"][0](steps) == 7 and FOOTPRINTS["gaussian"][0](steps) == 9
+    assert np.abs(read("cell", img)).max() < 1e-6
+    assert np.abs(read("gaussian", img)[inner]).max() > 1e-2  # sigma 1.7 px: ~2% of a neighbour one unit off
+    noisy = (img + sigma * rng.standard_normal(img.shape)).astype(np.float32)
+    # 196 inner texels: the sample standard deviation is within ~15% of the true one
+    assert read("cell", noisy)[inner].std() == pytest.approx(sigma * 6.5 / 49, rel=0.2)
+    assert read("point", noisy)[inner].std() == pytest.approx(sigma / 2, rel=0.2)
+
+
+def test_footprint_choices_agree():
+    """The reconstruction's config and `hemicube reconstruct --footprint` offer extraction's methods, no others."""
+    import argparse
+
+    from reconstruction.cli import register
+    from reconstruction.extraction import FOOTPRINTS
+    from reconstruction.pipeline import ReconstructConfig
+
+    sub = argparse.ArgumentParser().add_subparsers()
+    register(sub)
+    action = next(a for a in sub.choices["reconstruct"]._actions if a.dest == "footprint")
+    assert set(action.choices) == set(FOOTPRINTS) and ReconstructConfig().footprint in FOOTPRINTS
+    with pytest.raises(ValueError, match="footprint must be one of"):
+        ReconstructConfig(footprint="box")
