@@ -19,10 +19,10 @@ Per photo and camera (reference §6.3, with the differences stated):
      "cell" (default): the mean over the largest odd square of pixels that, with step 3's bilinear lookup (1 px
      more), stays inside the texel's cell: width k, the largest odd number with k + 1 <= d, d the smallest pixel
      step between adjacent texels of that view. Why: a texel spanning many photosites is measured by all of
-     them rather than by the ~4 a bilinear lookup reads (the paper rig at 256^2: ~7 px a texel, ~50
-     photosites, so the photo's noise falls by about sqrt(k^2 / 4)), without taking in its neighbours' light.
-     Where texels are under 4 px apart (the mini rig's ~2 px; the paper rig at 1024^2, ~2.6 px) k is 1 and
-     nothing changes: "point".
+     them rather than by the ~4 a bilinear lookup reads (the paper rig at 192^2: 6.4 px a texel in the primary
+     view, a 5 px box; at 256^2: 4.8 px, a 3 px box, which halves the photo's noise), without taking in its
+     neighbours' light. Where texels are under 4 px apart (the mini rig's 2.3 px at 48^2; the paper rig from
+     512^2 on, and its secondary view, foreshortened to 2.6 px, at 256^2) k is 1 and nothing changes: "point".
      "point": no filter, the value at the texel centre (step 3).
      "gaussian": the reference's anti-aliasing Gaussian, odd width k = 2 ceil(d/2 + 1) - 1 with d the largest
      pixel step between adjacent texels (only when d > 1.5 px). Why not the default: the GGX fit models the
