@@ -117,9 +117,9 @@ def register(sub) -> None:
     s.add_argument("--network", help=f"'pretrained' (the network shipped for the rig) or a `hemicube train` run "
                    f"folder (default: {rc.network})")
     s.add_argument("--device", help=f"torch/Warp device: cpu, cuda, cuda:N (default: {rc.device})")
-    s.add_argument("--footprint", choices=("cell", "point", "gaussian"), help="how a texel's photo value is read: "
-                   "the mean over its cell's pixels, the value at its centre, or after the reference's anti-aliasing "
-                   f"blur (default: {rc.footprint})")
+    s.add_argument("--footprint", choices=("point", "cell", "gaussian"), help="how a texel's photo value is read: "
+                   "the value at its centre, the mean over its cell's pixels (less noise where a texel spans many "
+                   f"pixels), or after the reference's anti-aliasing blur (default: {rc.footprint})")
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
 

@@ -16,14 +16,18 @@ Per photo and camera (reference §6.3, with the differences stated):
   1. flat field and colour matrix (twin.camera.correction, from the rig's calibration): camera RGB -> the
      LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
   2. the texel's footprint in the photo (`footprint`, ours; one function per method, FOOTPRINTS):
-     "cell" (default): the mean over the largest odd square of pixels that, with step 3's bilinear lookup (1 px
-     more), stays inside the texel's cell: width k, the largest odd number with k + 1 <= d, d the smallest pixel
-     step between adjacent texels of that view. Why: a texel spanning many photosites is measured by all of
-     them rather than by the ~4 a bilinear lookup reads (the paper rig at 192^2: 6.4 px a texel in the primary
-     view, a 5 px box; at 256^2: 4.8 px, a 3 px box, which halves the photo's noise), without taking in its
-     neighbours' light. Where texels are under 4 px apart (the mini rig's 2.3 px at 48^2; the paper rig from
-     512^2 on, and its secondary view, foreshortened to 2.6 px, at 256^2) k is 1 and nothing changes: "point".
-     "point": no filter, the value at the texel centre (step 3).
+     "point" (default): no filter, the value at the texel centre (step 3): the GGX fit models the BRDF AT the
+     texel centre, and both views then read the same kind of value.
+     "cell": the mean over the largest odd square of pixels that, with step 3's bilinear lookup (1 px more),
+     stays inside the texel's cell: width k, the largest odd number with k + 1 <= d, d the smallest pixel step
+     between adjacent texels of that view (1, no filter, under 4 px: the mini rig's 2.3 px at 48^2; the paper
+     rig from 512^2 on, and its secondary view, foreshortened to 2.6 px, at 256^2). A texel spanning many
+     photosites is then measured by more of them than the ~4 a bilinear lookup reads (the paper rig at 256^2:
+     4.8 px a texel in the primary view, a 3 px box, half the noise). Why not the default (docs/accuracy.md,
+     2026-11-26): on the paper rig at 256^2 with maps as fine as the grid it made normals, alpha and rho_s
+     20-30% better on satin and wood, but on the mini rig at 24^2 (64^2 maps: texture finer than a texel) it
+     made wood's normals and rho_d and paper's alpha (30 -> 52%) worse, scored against the maps at the texel
+     centre; and where one view is read over a box and the other at its centre the two disagree.
      "gaussian": the reference's anti-aliasing Gaussian, odd width k = 2 ceil(d/2 + 1) - 1 with d the largest
      pixel step between adjacent texels (only when d > 1.5 px). Why not the default: the GGX fit models the
      BRDF AT the texel centre, and the Gaussian (sigma ~1.1 px for texels 2 px apart) mixes the neighbours'
@@ -238,7 +242,7 @@ def _gaussian(img: np.ndarray, k: int) -> np.ndarray:
 
 
 # step 2's methods: (the filter's width from a view's texel steps, the filter) (colour-science style dispatch)
-FOOTPRINTS = {"cell": (_cell_width, _box), "point": (lambda steps: 0, None), "gaussian": (_gaussian_width, _gaussian)}
+FOOTPRINTS = {"point": (lambda steps: 0, None), "cell": (_cell_width, _box), "gaussian": (_gaussian_width, _gaussian)}
 
 
 def _sample(img: np.ndarray, uv: np.ndarray, footprint: str = "point", ksize: int = 0) -> np.ndarray:
@@ -258,7 +262,7 @@ def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
     return _sample(alignment.map, uv_primary)
 
 
-def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "cell",
+def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "point",
             progress: bool = False) -> Measurements:
     """Per-texel measurements of a capture (module docstring; step 2's method: `footprint`, one of FOOTPRINTS)."""
     from .data import LUMITEXEL_SCALE

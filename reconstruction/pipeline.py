@@ -38,9 +38,9 @@ class ReconstructConfig:
     # the line photo left out of fine-tuning for validation (the paper holds out 1 of 64, unnamed);
     # None: the brightest line over the sample (a dim line would score the sensor's noise, not the model)
     holdout_line: int | None = None
-    # how a texel's photo value is read: "cell" (the mean over its cell's pixels), "point" or "gaussian" (the
-    # reference's anti-aliasing blur); reconstruction.extraction, step 2
-    footprint: str = "cell"
+    # how a texel's photo value is read: "point" (at its centre), "cell" (the mean over its cell's pixels) or
+    # "gaussian" (the reference's anti-aliasing blur); reconstruction.extraction, step 2
+    footprint: str = "point"
     network: str = "pretrained"    # "pretrained" (shipped for this rig) or a `hemicube train` run folder
     device: str = "cpu"
     align: AlignConfig = field(default_factory=AlignConfig)
