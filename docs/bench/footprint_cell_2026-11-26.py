@@ -1,5 +1,10 @@
 """`hemicube validate --sample NAME --resolution R` (mini rig, CPU, capture seed 1) with the extraction's footprint
-forced, in this process: python foot24.py FOOTPRINT RES OUT NAME..."""
+forced (ReconstructConfig.footprint; validate has no option for it), in this process, as run for docs/accuracy.md:
+
+    python docs/bench/footprint_cell_2026-11-26.py point 24 OUT satin wood fabric paper > point.json
+    python docs/bench/footprint_cell_2026-11-26.py cell 24 OUT satin wood fabric paper > cell.json
+
+(merged into footprint_cell_mini_cpu_24_2026-11-26.json). A record of how the numbers were measured."""
 import json, sys
 from pathlib import Path
 import torch
