@@ -294,11 +294,11 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
     shown = session.shown_patterns(0)
     learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]
 
-    views = ((uv0, footprint, k0), (uv1, footprint, k1))
+    views = ((uv0, k0), (uv1, k1))
 
     def sampled(job):
         k, c = job
-        return _sample(photo(k, c), *views[c])
+        return _sample(photo(k, c), views[c][0], footprint, views[c][1])
 
     # the photos are read, checked, corrected and sampled by a pool of threads (EXR decoding, sha256 and numpy
     # release the GIL): a paper-rig capture is 196 photos of 74 MB, ~0.5 s each on one core

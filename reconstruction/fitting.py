@@ -430,7 +430,7 @@ def _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config
         photos.append(_photos("secondary photos", "their weights", config.secondary_camera, *secondary, n, L, config,
                               dev, total))
     # log1p needs no scale; "mse" the targets' mean, a source's in the fit's chunks (_chunks)
-    scale_m = max(_target_mean(m, n, L, config.batch or max(1, AUTO_CHUNK_PAIRS // L), dev), 1e-12) \
+    scale_m = max(_target_mean(m, n, L, config.batch or _auto_chunk(L), dev), 1e-12) \
         if config.loss == "mse" else 1.0
 
     def T(a):
@@ -793,9 +793,14 @@ def _initial(prob: _Problem):
 
 
 # --- the methods -----------------------------------------------------------------------------------------
+def _auto_chunk(leds: int) -> int:
+    """Texels a chunk holds when FitConfig.batch is None: AUTO_CHUNK_PAIRS texel-LED pairs."""
+    return max(1, AUTO_CHUNK_PAIRS // max(leds, 1))
+
+
 def _chunk_size(prob: _Problem, size: int | None) -> int:
-    """`size`, or None: as many texels as AUTO_CHUNK_PAIRS texel-LED pairs hold (at most all of them)."""
-    return size or min(prob.n, max(1, AUTO_CHUNK_PAIRS // max(prob.leds, 1)))
+    """`size`, or None: _auto_chunk's texels (at most all of them)."""
+    return size or min(prob.n, _auto_chunk(prob.leds))
 
 
 def _chunks(prob: _Problem, size: int | None):
