@@ -54,7 +54,7 @@ HOW = {
     "duty_peak": "largest drive (level / 255) of any LED in any frame",
     "duty_mean_max": "largest exposure-weighted mean drive of any LED over the pattern photos",
     "maps_*": "with --maps: each sample captured with the first seed's patterns (capture seed 1), reconstructed "
-              "with its network on the 48^2 grid, scored against the true maps (hemicube validate's metrics); "
+              "with its network on the --maps-resolution grid (default 48^2), scored against the true maps (hemicube validate's metrics); "
               "mean over the samples of the median error (alpha: of alpha_x and alpha_y) and of the fitted maps' "
               "render SSIM against the held-out line photo",
     "maps_goals_missed": "with --maps: hemicube validate's goals (thresholds) missed, over all the samples",
@@ -162,9 +162,11 @@ MAP_METRICS = {"maps_alpha_pct": ("maps.alpha_x_pct.median", "maps.alpha_y_pct.m
                "maps_normal_deg": ("maps.normal_deg.median",), "maps_render_ssim": ("render.maps.ssim",)}
 
 
-def _map_errors(design, run: Path, patterns, samples, out: Path, device: str, progress: bool) -> dict:
+def _map_errors(design, run: Path, patterns, samples, out: Path, device: str, progress: bool,
+                resolution: int | None = None) -> dict:
     """Median map errors through the twin: each sample captured with the design's patterns (capture seed 1) and
-    reconstructed with its network (`hemicube validate`'s end to end); the mean over the samples of each
+    reconstructed with its network on a `resolution`^2 grid (None: the pipeline's; `hemicube validate`'s end to
+    end, whose thresholds at that grid count the goals missed); the mean over the samples of each
     median (alpha: of alpha_x's and alpha_y's), the validation goals missed in all, and the per-sample
     metrics."""
     from hemicube.validate import end_to_end
@@ -173,7 +175,7 @@ def _map_errors(design, run: Path, patterns, samples, out: Path, device: str, pr
     per = {}
     for i, name in enumerate(samples):  # a folder of its own per sample, named after it (a sample folder by its name)
         where = out / "maps" / f"{i:02d}_{Path(name).name.replace('@', '_seed')}"
-        metrics, rows, _ = end_to_end(design.rig, name, device, where, None, 1, False, network=str(run),
+        metrics, rows, _ = end_to_end(design.rig, name, device, where, resolution, 1, False, network=str(run),
                                       learned=patterns)
         flat = flatten_metrics(metrics)
         per[name] = {k: float(np.mean([flat[m] for m in ms])) for k, ms in MAP_METRICS.items()}
@@ -185,9 +187,10 @@ def _map_errors(design, run: Path, patterns, samples, out: Path, device: str, pr
             | {"maps_goals_missed": sum(len(p["goals_missed"]) for p in per.values()), "maps_per_sample": per})
 
 
-def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = True, maps=()) -> dict:
+def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = True, maps=(),
+                    maps_resolution: int | None = None) -> dict:
     """Every figure of one design (module docstring), its outputs written under `out`; with `maps` (sample
-    names) also the map errors through the twin."""
+    names) also the map errors through the twin, on a `maps_resolution`^2 texture grid (None: the pipeline's)."""
     import torch
 
     from reconstruction.data import LUMITEXEL_SCALE, SamplingConfig, heldout_set
@@ -248,7 +251,8 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
         "duty_peak": float(duty["peak"].max()), "duty_mean_max": float(duty["mean"].max()),
     }
     if maps:
-        row |= _map_errors(design, out / f"seed{design.training.seeds[0]}", patterns, maps, out, device, progress)
+        row |= _map_errors(design, out / f"seed{design.training.seeds[0]}", patterns, maps, out, device, progress,
+                           maps_resolution)
     (out / "figures.json").write_text(json.dumps({**row, "heldout_eq3_per_seed": losses}, indent=1))
     return {**row, "heldout_eq3_per_seed": losses, "_snr": snr[finite]}
 
@@ -291,9 +295,10 @@ COLUMNS = ("design", "rig", "family", "patterns", "leds_on", "train_on", "test_o
 
 
 def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = False, progress: bool = True,
-             maps=(), jobs: int = 1) -> int:
+             maps=(), jobs: int = 1, maps_resolution: int | None = None) -> int:
     """Load every design (all checked before any work), score each, write the table and plots, print it. With
-    jobs > 1 the training runs go first, `jobs` at a time in separate processes."""
+    jobs > 1 the training runs go first, `jobs` at a time in separate processes. `maps` are scored on a
+    `maps_resolution`^2 texture grid (None: the pipeline's)."""
     from twin.atomic import write_bytes_atomic
     from twin.design.design_file import load_design
     from twin.materials.samples import load_sample
@@ -306,10 +311,13 @@ def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = Fals
         raise ValueError(f"design names must be distinct in one comparison, got {names}")
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
+    if maps_resolution is not None and (isinstance(maps_resolution, bool) or not isinstance(maps_resolution, int)
+                                        or maps_resolution < 4):
+        raise ValueError(f"maps resolution must be an integer >= 4 texels per side, got {maps_resolution!r}")
     out = Path(output)
     if jobs > 1:
         _train_parallel(designs, out, device, jobs, progress)
-    rows = [evaluate_design(d, out / d.name, device, progress, maps) for d in designs]
+    rows = [evaluate_design(d, out / d.name, device, progress, maps, maps_resolution) for d in designs]
     for key, what in (("steps", "step budgets"), ("test_on", "test distributions")):
         seen = sorted({str(r[key]) for r in rows})
         if len(seen) > 1:
@@ -350,11 +358,14 @@ def register(sub) -> None:
     e.add_argument("--maps", nargs="+", default=(), metavar="SAMPLE", help="also capture and reconstruct these "
                    "samples through the twin with each design's patterns and network and report the map errors "
                    "(e.g. the material suite's held-back compositions: wood@9101 paper@9101; minutes each on a CPU; default: none)")
+    e.add_argument("--maps-resolution", type=int, default=None, metavar="N", help="texture grid of the --maps "
+                   "reconstructions, N^2 texels (default: the pipeline's, 48; a coarser grid scores sooner, against "
+                   "that grid's thresholds)")
     e.add_argument("--jobs", type=int, default=1, help="training runs at a time, each in its own process (the "
                    "Warp CPU kernels and a small network's steps use one core each; on a GPU they overlap; "
                    "default: %(default)s)")
     e.set_defaults(func=lambda a: evaluate(a.designs, a.output, a.device, a.json, not a.no_progress, a.maps,
-                                           a.jobs))
+                                           a.jobs, a.maps_resolution))
     o = ds.add_parser("optimise", help="train a design's patterns and network on its training distribution "
                       "(uniform GGX, the material suite, or folders of maps): patterns to capture with, a network "
                       "to reconstruct with")

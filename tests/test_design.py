@@ -193,6 +193,10 @@ def test_design_evaluate_two_designs(tmp_path, capsys):
                             str(tmp_path / "o2")])
     assert rc == 2 and not (tmp_path / "o2").exists()
     assert "bad.toml: leds.off: LED index -1 is not on rig" in capsys.readouterr().err
+    rc = hemicube.cli.main(["design", "evaluate", str(tmp_path / "learned-4.toml"), "-o", str(tmp_path / "o3"),
+                            "--maps", "wood", "--maps-resolution", "2"])
+    assert rc == 2 and not (tmp_path / "o3").exists()
+    assert "maps resolution must be an integer >= 4 texels per side, got 2" in capsys.readouterr().err
 
 
 def test_design_evaluate_maps_through_the_twin(tmp_path, capsys):
@@ -205,7 +209,8 @@ def test_design_evaluate_maps_through_the_twin(tmp_path, capsys):
     write_maps(load_sample("wood@9101", 32), tmp_path / "wood")
     d = _write(tmp_path, 'name = "m4"\n[patterns]\ncount = 4\n[training]\nsteps = 8\nbatch = 16\nseeds = [0]\n')
     out = tmp_path / "out"
-    assert hemicube.cli.main(["design", "evaluate", str(d), "-o", str(out), "--maps", str(tmp_path / "wood")]) == 0
+    assert hemicube.cli.main(["design", "evaluate", str(d), "-o", str(out), "--maps", str(tmp_path / "wood"),
+                              "--maps-resolution", "16"]) == 0
     assert "maps_render_ssim" in capsys.readouterr().err  # the progress lines name each sample's figures
     row = json.loads((out / "designs.json").read_text())["designs"][0]
     assert all(np.isfinite(row[k]) and row[k] >= 0 for k in MAP_METRICS)
@@ -213,6 +218,7 @@ def test_design_evaluate_maps_through_the_twin(tmp_path, capsys):
     per = row["maps_per_sample"][str(tmp_path / "wood")]
     assert row["maps_goals_missed"] == len(per["goals_missed"])
     assert (out / "m4" / "maps" / "00_wood" / "report" / "metrics.json").is_file()
+    assert "texture grid 16^2" in (out / "m4" / "maps" / "00_wood" / "report" / "report.md").read_text()
     assert "maps_alpha_pct" in next(csv.DictReader(open(out / "designs.csv")))
 
 

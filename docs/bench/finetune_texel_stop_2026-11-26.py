@@ -6,8 +6,8 @@ later steps cost less. Reports texel-steps (the decoder evaluations, the compute
     python docs/bench/finetune_texel_stop_2026-11-26.py mini 2304 > finetune_texel_stop_mini_cpu_2304_2026-11-26.json
 
 `hemicube bench reconstruct`'s synthetic texels (seed 0) with 1% multiplicative photo noise on the lines, line 0 held
-out. Run on the mini rig on the CPU (docs/performance.md); the paper rig's run (`paper 65536 cuda`) is the one that
-can show a saving, not yet made.
+out. Run on the mini rig on the CPU and on the paper rig on an H100 (`paper 65536 cuda`); neither saves steps
+(docs/performance.md).
 """
 import sys, time, json, numpy as np, torch, twin
 from reconstruction.bench import _texels
