@@ -123,3 +123,21 @@ def test_a_run_that_finished_no_stage_leaves_nothing(validate_dir, tmp_path, mon
     with pytest.raises(RuntimeError, match="no alignment"):
         reconstruct(validate_dir / "capture", tmp_path / "D", CONFIG, progress=False)
     assert list(tmp_path.iterdir()) == []  # no output, no stage folder, no half-built folder
+
+
+def test_killed_between_keeping_fine_tuning_and_forgetting_its_checkpoint(validate_dir, run_a, tmp_path, monkeypatch):
+    """A kill after fine-tuning's stage is kept but before its checkpoint is forgotten leaves both: the run
+    resumes from the kept stage and gives the uninterrupted run's bytes."""
+    out = tmp_path / "E"
+
+    def killed(self, stage):
+        raise RuntimeError(f"killed before forgetting {stage}")
+
+    monkeypatch.setattr(ReconstructionFolder, "forget_stage", killed)
+    with pytest.raises(RuntimeError, match="killed before forgetting finetune_state"):
+        reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    assert _stage_names(stages_folder(out)) == {"alignment", "extraction", "finetune", "finetune_state"}
+    monkeypatch.undo()
+    reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    assert ReconstructionFolder(out).summary()["resumed"] == ["alignment", "extraction", "finetune"]
+    assert _files(out) == _files(run_a)
