@@ -13,7 +13,10 @@ def cmd_reconstruct(args) -> int:
     over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm),
                               ("holdout_line", args.holdout_line), ("network", args.network),
                               ("device", args.device), ("footprint", args.footprint)) if v is not None}
-    r = reconstruct(args.capture, args.output, replace(ReconstructConfig(), **over), progress=not args.no_progress)
+    config = replace(ReconstructConfig(), **over)
+    if args.finetune_precision is not None:
+        config = replace(config, finetune=replace(config.finetune, precision=args.finetune_precision))
+    r = reconstruct(args.capture, args.output, config, progress=not args.no_progress)
     print(f"reconstruction: {r.directory} ({r.grid.resolution}^2 texels over {r.grid.size_mm:.1f} mm; "
           + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in r.timings.items()) + ")")
     return 0
@@ -102,6 +105,7 @@ def cmd_bench(args) -> int:
 
 def register(sub) -> None:
     """Add the reconstruction's sub-commands to the front's parser."""
+    from .finetune import PRECISIONS
     from .pipeline import ReconstructConfig
     from .train import TrainConfig
 
@@ -120,6 +124,9 @@ def register(sub) -> None:
     s.add_argument("--footprint", choices=("point", "cell", "gaussian"), help="how a texel's photo value is read: "
                    "the value at its centre, the mean over its cell's pixels (less noise where a texel spans many "
                    f"pixels), or after the reference's anti-aliasing blur (default: {rc.footprint})")
+    s.add_argument("--finetune-precision", choices=PRECISIONS, help="fine-tuning's matrix products on a CUDA device: "
+                   "TF32 (tensor cores; within 1%% of float32's objective, measured) or float32; the CPU's are float32 "
+                   f"either way (default: {rc.finetune.precision})")
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
 

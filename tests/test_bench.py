@@ -46,6 +46,9 @@ RECON = ["bench", "reconstruct", "--rig", "mini", "--texels", "8"]
 def test_bench_reconstruct_baseline_matches_and_drift_fails(capsys, monkeypatch):
     rc, res, _ = _run(RECON, capsys)
     assert rc == 0 and res["passed"]
+    assert [c["check"] for c in res["checks"]] == ["finetune_batch100_vs_batched_lines_few_steps",
+                                                   "finetune_default_vs_float32_median_objective"]
+    assert res["finetune_precision"] == "tf32" and res["finetune_float32"]["seconds"] > 0
     import reconstruction.finetune as ft
 
     plain = ft.finetune
@@ -57,6 +60,17 @@ def test_bench_reconstruct_baseline_matches_and_drift_fails(capsys, monkeypatch)
     monkeypatch.setattr(ft, "finetune", drifted)
     rc, res, err = _run(RECON, capsys)
     assert rc == 1 and "finetune_batch100_vs_batched_lines" in err
+
+    def worse(model, latent, *a, **kw):  # the default precision's run ends further from the photos than float32's
+        cfg = a[-1] if a else kw["config"]
+        r = plain(model, latent, *a, **kw)
+        if cfg.precision != "float32" and cfg.source == "code":
+            r.latent = r.latent + 0.5
+        return r
+
+    monkeypatch.setattr(ft, "finetune", worse)
+    rc, res, err = _run(RECON, capsys)
+    assert rc == 1 and "finetune_default_vs_float32_median_objective" in err
 
 
 FIT = ["bench", "fit-forward", "--rig", "mini", "--texels", "32", "--repeats", "1"]
