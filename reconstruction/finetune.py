@@ -148,8 +148,9 @@ class FinetuneConfig:
     precision       the matrix products of the passes on a CUDA device (issue #12's "mixed precision where it
                     measurably does not hurt"): "tf32" (the tensor cores' 10-bit mantissa, float32 range and sums)
                     or "float32". On an H100 with the shipped paper-rig network and these defaults, TF32 ran the
-                    passes 1.8x faster (14.8 -> 8.3 s for 65,536 texels) with the median per-texel pass-3
-                    objective 0.23% above float32's, inside the issue's 1% (docs/performance.md). On the CPU every
+                    passes 1.8x faster (14.8 -> 8.1 s for 65,536 texels) with the median per-texel pass-3
+                    objective 0.31% above float32's, inside the issue's 1% (docs/performance.md; at the paper's
+                    fixed 350 steps, source "paper", it is 1.5%: use float32 there). On the CPU every
                     product is float32 whatever the setting (the same bits). Only fine-tuning: the decoded
                     lumitexels the fit reads, and the fit, stay float32.
     """

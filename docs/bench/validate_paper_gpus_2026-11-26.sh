@@ -9,6 +9,8 @@
 #
 # Writes .gpu/out/SAMPLE_RES/ (the runs), .gpu/logs/SAMPLE_RES.log, .gpu/results/SAMPLE_RES.tar.gz and, when every
 # run has ended, .gpu/logs/ALLDONE. Expects Warp and the wheels already unpacked in .gpu/site and .gpu/pylib.
+# The lent machine goes back 30 s after a call ends, with the runs and their files: poll with calls back to back
+# (e.g. `sleep 400; tail ...`), and fetch each run's tarball as soon as it is there (2026-11-26: four 1024^2 runs lost).
 R=$PWD
 export PYTHONPATH=$R/.gpu/site:$R/.gpu/pylib:$R PYTHONUNBUFFERED=1
 mkdir -p .gpu/logs .gpu/out .gpu/results
