@@ -39,6 +39,19 @@ def tf32(on: bool) -> None:
     torch.backends.cudnn.allow_tf32 = on
 
 
+class Later:
+    """A stopping rule that stops `extra` steps after `rule` would have, calling `then()` when `rule` fires."""
+
+    def __init__(self, rule, extra: int, then=lambda: None):
+        self.rule, self.extra, self.then, self.fired = rule, extra, then, None
+
+    def should_stop(self, hist) -> bool:
+        if self.fired is None and self.rule.should_stop(hist):
+            self.fired = len(hist)
+            self.then()
+        return self.fired is not None and len(hist) - self.fired >= self.extra
+
+
 def scheduled(mode: str):
     def run(x0, energy, steps, lr, rule):
         pass3 = x0.shape[1] == 72
@@ -51,24 +64,7 @@ def scheduled(mode: str):
         # tf32_finish20: pass 3 in TF32 until its rule fires, then 20 float32 steps of the same Adam
         tf32(True)
         try:
-            if not pass3:
-                return original(x0, energy, steps, lr, rule)
-            x = x0.detach().clone().requires_grad_(True)
-            opt = torch.optim.Adam([x], lr=lr, betas=(0.9, 0.999))
-            hist, done, fired = [], 0, None
-            for _ in range(steps):
-                opt.zero_grad(set_to_none=True)
-                e = energy(x)
-                e.backward()
-                opt.step()
-                done += 1
-                hist.append(float(e.detach()))
-                if fired is None and rule is not None and rule.should_stop(hist):
-                    fired = done
-                    tf32(False)
-                if fired is not None and done - fired >= 20:
-                    break
-            return x.detach(), hist, done
+            return original(x0, energy, steps, lr, Later(rule, 20, lambda: tf32(False)) if pass3 and rule else rule)
         finally:
             tf32(False)
     return run
