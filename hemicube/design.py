@@ -54,9 +54,9 @@ HOW = {
     "duty_peak": "largest drive (level / 255) of any LED in any frame",
     "duty_mean_max": "largest exposure-weighted mean drive of any LED over the pattern photos",
     "maps_*": "with --maps: each sample captured with the first seed's patterns (capture seed 1), reconstructed "
-              "with its network on the --maps-resolution grid (default 48^2), scored against the true maps (hemicube validate's metrics); "
-              "mean over the samples of the median error (alpha: of alpha_x and alpha_y) and of the fitted maps' "
-              "render SSIM against the held-out line photo",
+              "with its network on the --maps-resolution grid (default 48^2), scored against the true maps "
+              "(hemicube validate's metrics); mean over the samples of the median error (alpha: of alpha_x and "
+              "alpha_y) and of the fitted maps' render SSIM against the held-out line photo",
     "maps_goals_missed": "with --maps: hemicube validate's goals (thresholds) missed, over all the samples",
 }
 REFERENCE_TEXELS = 256

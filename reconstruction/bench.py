@@ -101,7 +101,6 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     from twin.bench import PeakDeviceMemory, finish_checks, same_work
 
     from .finetune import FinetuneConfig
-
     from .network import AcquisitionNet, count_parameters
     from .pipeline import load_network
     from .train import TrainConfig
