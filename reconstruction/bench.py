@@ -184,9 +184,10 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
     t_decode = time.perf_counter() - t
     # warm-up, untimed: the first fine-tuning of a process pays cuBLAS's and the kernels' first loads (6.9 s against
     # 2.6 s for pass 1 of 65,536 paper-rig texels on an H100), which would count against whichever run went first
+    b = FinetuneConfig().batch or len(z)  # one batch of the timed runs' size
     for precision in PRECISIONS:
-        finetune(model, z[:16384], lines[:16384], W, FinetuneConfig(iterations=(1, 1, 1), holdout=(0,), device=dev,
-                                                                     precision=precision))
+        finetune(model, z[:b], lines[:b], W, FinetuneConfig(iterations=(1, 1, 1), holdout=(0,), device=dev,
+                                                             precision=precision))
     sync()
     runs, ft_seconds = {}, {}
     for name, cfg in (("default", FinetuneConfig(holdout=(0,), device=dev)),

@@ -105,6 +105,7 @@ def cmd_bench(args) -> int:
 
 def register(sub) -> None:
     """Add the reconstruction's sub-commands to the front's parser."""
+    from .extraction import FOOTPRINTS
     from .finetune import PRECISIONS
     from .pipeline import ReconstructConfig
     from .train import TrainConfig
@@ -121,7 +122,7 @@ def register(sub) -> None:
     s.add_argument("--network", help=f"'pretrained' (the network shipped for the rig) or a `hemicube train` run "
                    f"folder (default: {rc.network})")
     s.add_argument("--device", help=f"torch/Warp device: cpu, cuda, cuda:N (default: {rc.device})")
-    s.add_argument("--footprint", choices=("point", "cell", "gaussian"), help="how a texel's photo value is read: "
+    s.add_argument("--footprint", choices=tuple(FOOTPRINTS), help="how a texel's photo value is read: "
                    "the value at its centre, the mean over its cell's pixels (less noise where a texel spans many "
                    f"pixels), or after the reference's anti-aliasing blur (default: {rc.footprint})")
     s.add_argument("--finetune-precision", choices=PRECISIONS, help="fine-tuning's matrix products on a CUDA device: "

@@ -429,18 +429,6 @@ def _adam_run(x0: torch.Tensor, energy, steps: int, lr: float, rule: EarlyStopRu
     return x.detach(), [float(v) for v in hist], done
 
 
-@contextmanager
-def _matmul_precision(precision: str):
-    """CUDA matrix products in `precision` (FinetuneConfig.precision) inside, torch's global setting restored
-    after (the fit and everything else keep theirs); the CPU's products are float32 either way."""
-    before = torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = precision == "tf32"
-    try:
-        yield
-    finally:
-        torch.backends.cuda.matmul.allow_tf32 = before
-
-
 def _resolve(device: str) -> torch.device:
     """torch.device with the current CUDA index filled in ("cuda" -> "cuda:0"), comparable with a tensor's."""
     d = torch.device(device)
@@ -543,6 +531,8 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
                                                                     "seconds"))
     problems = [_Problem(model, y[sl].to(dev), w_dev, ad, eps) for sl in slices]
 
+    from twin.optics.torch_ops import tf32_products  # Warp's kernels load with it: not at this module's import
+
     def track(name, x0, energy, i):
         """One Adam run of pass `name` (index i) from x0; records the objective, history and iterations."""
         x, hist, done = _adam_run(x0, energy, caps[i], lrs[i], rules[i])
@@ -574,7 +564,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
             t0 = time.perf_counter()
             finished(first + b, b == len(slices) - 1)
 
-    with _frozen(model), torch.enable_grad(), _matmul_precision(config.precision):
+    with _frozen(model), torch.enable_grad(), tf32_products(config.precision == "tf32"):
         def pass1(sl, pb):  # the grey 56-D latent against the mean over RGB, W[..., 0]
             grey1[sl] = track("pass1", z[sl].to(dev), pb.e1, 0)
 

@@ -75,6 +75,8 @@ def project(m, w, tensor_cores: bool = False):
     sum_l |W| m): 3.9 ms instead of 19. Returns (P, K, 3)."""
     import torch
 
+    from twin.optics.torch_ops import tf32_products
+
     if m.ndim != 3 or m.shape[2] != 3 or w.ndim != 3 or w.shape[1:] != m.shape[1:]:
         raise ValueError(f"project needs lumitexels (P, L, 3) and patterns (K, L, 3), got {tuple(m.shape)} and "
                          f"{tuple(w.shape)}")
@@ -83,13 +85,8 @@ def project(m, w, tensor_cores: bool = False):
     block = torch.zeros(L, 3, Kn, 3, dtype=m.dtype, device=m.device)
     for c in range(3):
         block[:, c, :, c] = w[:, :, c].T
-    cuda = torch.backends.cuda.matmul
-    before = cuda.allow_tf32
-    cuda.allow_tf32 = bool(tensor_cores)
-    try:
+    with tf32_products(tensor_cores):
         return (m.reshape(P, 3 * L) @ block.reshape(3 * L, 3 * Kn)).view(P, Kn, 3)
-    finally:
-        cuda.allow_tf32 = before
 
 
 def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, patterns, *,

@@ -20,6 +20,20 @@ from twin.optics.inputs import (CONVENTIONS, _init, _led_inputs, make_options, r
                                 validate_points)
 
 
+@contextlib.contextmanager
+def tf32_products(enabled: bool):
+    """CUDA matrix products inside may use TF32 (tensor cores: a 10-bit mantissa, float32 range and sums) when
+    `enabled`, and may not otherwise; torch's global setting is the caller's again after. The CPU's products are
+    float32 either way."""
+    flags = torch.backends.cuda.matmul
+    before = flags.allow_tf32
+    flags.allow_tf32 = bool(enabled)
+    try:
+        yield
+    finally:
+        flags.allow_tf32 = before
+
+
 def _wp_device(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
