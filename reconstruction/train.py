@@ -6,10 +6,15 @@
 A run folder holds
     metrics.jsonl            one JSON object per evaluation (step, train_loss, train_swap_loss,
                              heldout_loss, wall_s, lumitexels_per_s), appended and flushed line by line
-    checkpoint.safetensors   model state ("model.<name>") + Adam state ("optim.<param index>.<key>")
-    checkpoint.json          step, config, rig digest, RNG states (lists), wall time, sha256 of the tensor
-                             file; written LAST, so a checkpoint is valid only when its JSON names it
-                             (the tensor file's sha256 must match)
+    checkpoint-STEP-SAVE-K.safetensors
+                             model state ("model.<name>") + Adam state ("optim.<param index>.<key>"), in shard
+                             files of at most CHECKPOINT_SHARD_BYTES of tensor data each (a larger tensor is cut
+                             into pieces "<name>@k" along its flattened elements)
+    checkpoint.json          step, config, rig digest, RNG states (lists), wall time, the shard files and their
+                             sha256; written LAST, so a checkpoint is valid only when its JSON names it (every
+                             shard's sha256 must match); each save writes new shard names and removes the
+                             files no checkpoint names only after its JSON is in place, so a run killed at any
+                             point keeps a valid checkpoint
     patterns.npz             the learned patterns as a twin.capture.patterns file: 64 frames (32 signed pairs,
                              "learned_00+", "learned_00-", ...) x ALL rig LEDs (bottom LEDs 0) x 3 equal
                              channels; usable as `hemicube capture --patterns`
@@ -22,8 +27,10 @@ the call began, after the step in hand: it evaluates the held-out set there (one
 a checkpoint and the outputs, and returns with "stopped_on_time_limit": true. Re-running the same command
 resumes. This exists for machines lent in slices of a few minutes (the paper rig's GPU training); the
 limit is not part of the config (a chunk's length does not change the trained model), and at least one
-step runs per call, so repeated calls always progress. The final checkpoint save (about 2 GB for the paper
-rig) comes after the limit: leave a margin for it.
+step runs per call, so repeated calls always progress. The final checkpoint save (78 MB for the shipped compact
+paper-rig network, about 2 GB for the released architecture) comes after the limit: leave a margin for it.
+The shards let a chunk's checkpoint leave the machine it ran on: issue #13 item 2 asks for checkpoints of at most
+16 MiB, the largest file a lent GPU machine gives back, so that the next chunk can run on another machine.
 
 Steps. Step i (0-based) trains on batch i of the data stream, so a resumed run sees exactly the data of an
 uninterrupted one; the global torch RNG (dropout, measurement noise) is saved in the checkpoint and
@@ -60,10 +67,11 @@ from .distributed import Dist, any_rank, all_sum, barrier, gather_objects, globa
 from .network import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
 
 __all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_patterns", "load_checkpoint",
-           "CHECKPOINT_TENSORS", "CHECKPOINT_JSON", "heldout_losses", "blind_loss"]
+           "CHECKPOINT_SHARD_BYTES", "CHECKPOINT_JSON", "heldout_losses", "blind_loss"]
 
-CHECKPOINT_TENSORS = "checkpoint.safetensors"
 CHECKPOINT_JSON = "checkpoint.json"
+# tensor bytes per shard file: 15 MiB, so that a file with its safetensors header stays under 16 MiB (module docstring)
+CHECKPOINT_SHARD_BYTES = 15 * 2 ** 20
 # config fields that may change between a run and its resumption: they do not change the trained model
 # (steps: how far to go; eval/checkpoint cadence: what is written along the way; device: where it runs)
 RESUMABLE_FIELDS = ("steps", "eval_every", "checkpoint_every", "device")
@@ -191,16 +199,65 @@ def _save_checkpoint(run_dir: Path, model, opt, step: int, config: TrainConfig, 
         for key, v in st.items():
             t = v if torch.is_tensor(v) else torch.tensor(v)
             tensors[f"optim.{pid}.{key}"] = t.detach().cpu().contiguous().clone()
-    path = run_dir / CHECKPOINT_TENSORS
-    with atomic_path(path) as tmp:
-        save_file(tensors, str(tmp), metadata={"step": str(step)})
-    meta = {"format": "hemicube-train-checkpoint", "version": 1, "step": int(step), "tensors": CHECKPOINT_TENSORS,
-            "sha256": file_sha256(path), "config": config.to_json(), "rig_digest": rig_digest,
-            "rng": rng[0], "world_size": ctx.world, "wall_s": float(wall_s)}
+    before = _checkpoint_meta(run_dir)
+    save = int(before.get("save", 0)) + 1 if before else 1  # new names every save: the old files stay valid
+    shards, split = _shards(tensors, CHECKPOINT_SHARD_BYTES)
+    names = [f"checkpoint-{step:09d}-{save:04d}-{k:03d}.safetensors" for k in range(len(shards))]
+    for name, shard in zip(names, shards):
+        with atomic_path(run_dir / name) as tmp:
+            save_file(shard, str(tmp), metadata={"step": str(step)})
+    meta = {"format": "hemicube-train-checkpoint", "version": 2, "step": int(step), "save": save,
+            "tensors": names, "sha256": [file_sha256(run_dir / n) for n in names], "split": split,
+            "config": config.to_json(), "rig_digest": rig_digest, "rng": rng[0], "world_size": ctx.world,
+            "wall_s": float(wall_s)}
     if ctx.active:
         meta["rng_ranks"] = rng
     write_bytes_atomic(run_dir / CHECKPOINT_JSON, json.dumps(meta).encode())
+    # the files no checkpoint names now: the previous save's, and any a save killed before its JSON left
+    for old in [*run_dir.glob("checkpoint-*.safetensors"), run_dir / "checkpoint.safetensors"]:
+        if old.name not in names:
+            old.unlink(missing_ok=True)
     barrier(ctx)
+
+
+def _shards(tensors: dict, limit: int) -> tuple[list[dict], dict]:
+    """(shards, split): the tensors in order, in dicts of at most `limit` bytes each; a tensor of more than `limit`
+    bytes is cut along its flattened elements into pieces "<name>@k", and split[name] is its shape."""
+    shards, current, size, split = [], {}, 0, {}
+    for name, t in tensors.items():
+        if t.nbytes > limit:
+            split[name] = list(t.shape)
+            per = max(1, limit // t.element_size())
+            parts = [(f"{name}@{k}", p.clone()) for k, p in enumerate(t.reshape(-1).split(per))]
+        else:
+            parts = [(name, t)]
+        for key, p in parts:
+            if current and size + p.nbytes > limit:
+                shards.append(current)
+                current, size = {}, 0
+            current[key] = p
+            size += p.nbytes
+    return shards + ([current] if current else []), split
+
+
+def _tensor_files(meta: dict) -> list[str]:
+    """The tensor files a checkpoint.json names (version 1 named one file, checkpoint.safetensors, as a string)."""
+    t = meta.get("tensors", [])
+    return [t] if isinstance(t, str) else list(t)
+
+
+def _checkpoint_meta(run_dir: Path) -> dict | None:
+    """checkpoint.json's dict, or None when there is none."""
+    jpath = run_dir / CHECKPOINT_JSON
+    if not jpath.is_file():
+        return None
+    try:
+        meta = json.loads(jpath.read_text())
+    except (OSError, ValueError) as e:
+        raise TrainError(f"{jpath}: not a readable checkpoint ({e})") from None
+    if not isinstance(meta, dict):
+        raise TrainError(f"{jpath}: not a readable checkpoint (not a JSON object)")
+    return meta
 
 
 def _resume_rng(meta: dict, ctx: Dist, seed: int) -> None:
@@ -218,22 +275,31 @@ def _resume_rng(meta: dict, ctx: Dist, seed: int) -> None:
 
 
 def load_checkpoint(run_dir) -> tuple[dict, dict] | None:
-    """(checkpoint.json's dict, tensors on the CPU) of a run folder, or None when it has no checkpoint."""
+    """(checkpoint.json's dict, tensors on the CPU) of a run folder, or None when it has no checkpoint. Every
+    shard file's sha256 is checked against the JSON's."""
     from safetensors.torch import load_file
 
     run_dir = Path(run_dir)
-    jpath = run_dir / CHECKPOINT_JSON
-    if not jpath.is_file():
+    meta = _checkpoint_meta(run_dir)
+    if meta is None:
         return None
-    try:
-        meta = json.loads(jpath.read_text())
-    except (OSError, ValueError) as e:
-        raise TrainError(f"{jpath}: not a readable checkpoint ({e})") from None
-    tpath = run_dir / meta.get("tensors", CHECKPOINT_TENSORS)
-    if not tpath.is_file() or file_sha256(tpath) != meta.get("sha256"):
-        raise TrainError(f"{jpath} does not name {tpath.name} (missing or different sha256: the run was "
-                         "interrupted while saving a checkpoint); start a new run folder")
-    return meta, load_file(str(tpath))
+    names = _tensor_files(meta)
+    shas = meta.get("sha256")
+    shas = [shas] if isinstance(shas, str) else list(shas or [])
+    tensors = {}
+    for k, name in enumerate(names):
+        path = run_dir / name
+        if not path.is_file() or k >= len(shas) or file_sha256(path) != shas[k]:
+            raise TrainError(f"{run_dir / CHECKPOINT_JSON} names {name}, which is missing or has another sha256 "
+                             "(changed after the checkpoint was written); restore the file or start a new run folder")
+        tensors.update(load_file(str(path)))
+    if not names:
+        raise TrainError(f"{run_dir / CHECKPOINT_JSON} names no tensor file")
+    for name, shape in meta.get("split", {}).items():
+        keys = sorted((k for k in tensors if k.rsplit("@", 1)[0] == name and "@" in k),
+                      key=lambda k: int(k.rsplit("@", 1)[1]))
+        tensors[name] = torch.cat([tensors.pop(k) for k in keys]).reshape(shape)
+    return meta, tensors
 
 
 def load_run_model(run_dir, device="cpu") -> AcquisitionNet:

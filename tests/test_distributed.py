@@ -49,9 +49,9 @@ def _rows(run: Path) -> list[dict]:
 
 
 def _model(run: Path) -> dict:
-    from safetensors.torch import load_file
+    from reconstruction.train import load_checkpoint
 
-    return {k[6:]: v for k, v in load_file(str(run / "checkpoint.safetensors")).items() if k.startswith("model.")}
+    return {k[6:]: v for k, v in load_checkpoint(run)[1].items() if k.startswith("model.")}
 
 
 def _pre_bn_biases(model) -> set[str]:

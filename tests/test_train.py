@@ -9,8 +9,9 @@ import torch
 
 import twin
 from reconstruction.network import AcquisitionNet
-from reconstruction.train import (CHECKPOINT_JSON, CHECKPOINT_TENSORS, TrainConfig, TrainError, export_patterns,
-                                  is_pair_step, load_checkpoint, train)
+import reconstruction.train as train_module
+from reconstruction.train import (CHECKPOINT_JSON, TrainConfig, TrainError, export_patterns, is_pair_step,
+                                  load_checkpoint, train)
 from hemicube.cli import main
 from twin.capture.patterns import load_patterns
 
@@ -41,7 +42,9 @@ def test_cli_train_writes_a_complete_run(run200, capsys):
     assert [r["wall_s"] for r in rows] == sorted(r["wall_s"] for r in rows)
 
     meta = json.loads((run200 / CHECKPOINT_JSON).read_text())
-    assert meta["step"] == 200 and (run200 / CHECKPOINT_TENSORS).is_file()
+    assert meta["step"] == 200 and all((run200 / n).is_file() for n in meta["tensors"])
+    # the earlier saves' shard files are gone once a later checkpoint names its own
+    assert sorted(p.name for p in run200.glob("checkpoint-*.safetensors")) == sorted(meta["tensors"])
     assert meta["config"]["steps"] == 200 and isinstance(meta["rng"]["torch"], list)
     assert (run200 / "loss.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -162,3 +165,44 @@ def test_time_limit_chunks_resume_to_the_uninterrupted_run(run200, tmp_path, cap
     rows = _rows(run)
     assert [r["step"] for r in rows] == [0, 1, 2, 50, 100, 150, 200]
     assert all(r["heldout_loss"] == full[r["step"]] for r in rows if r["step"] in full)
+
+
+def test_checkpoint_shards_stay_small_and_move_between_folders(run200, tmp_path, monkeypatch, capsys):
+    """Issue #13 item 2: a checkpoint in files of at most CHECKPOINT_SHARD_BYTES of tensors each (16 MiB for a lent
+    machine's files), a tensor larger than that cut into pieces; a run moved to another folder (another machine)
+    resumes from its shards to the uninterrupted run bit for bit; a changed shard is refused in one line."""
+    import shutil
+
+    _, full = load_checkpoint(run200)
+    limit = max(t.nbytes for t in full.values()) // 3  # the largest tensors must be cut
+    monkeypatch.setattr(train_module, "CHECKPOINT_SHARD_BYTES", limit)
+    first = tmp_path / "machine_a" / "run"
+    args = ["train", "--rig", "mini", "--steps", "200", "--no-progress"]
+    assert main(args + ["--steps", "100", "-o", str(first)]) == 0
+    meta = json.loads((first / CHECKPOINT_JSON).read_text())
+    assert meta["version"] == 2 and len(meta["tensors"]) > 3 and meta["split"]
+    for name in meta["tensors"]:  # each file: at most `limit` bytes of tensors plus the safetensors header
+        assert (first / name).stat().st_size <= limit + 64 * 1024, name
+    moved = tmp_path / "machine_b" / "run"
+    shutil.copytree(first, moved)
+    orphan = moved / "checkpoint-000000150-0002-000.safetensors"  # what a save killed before its JSON leaves
+    orphan.write_bytes(b"partial")
+    assert load_checkpoint(moved)[0]["step"] == 100  # the JSON still names a whole checkpoint
+    assert main(args + ["-o", str(moved)]) == 0
+    meta_b, tb = load_checkpoint(moved)
+    assert meta_b["step"] == 200 and set(tb) == set(full)
+    for k in full:  # the shard size changes no bit of the training
+        assert torch.equal(full[k], tb[k]), k
+    assert sorted(p.name for p in moved.glob("checkpoint-*.safetensors")) == sorted(meta_b["tensors"])
+    assert not set(meta["tensors"]) & set(meta_b["tensors"])  # every save writes new names
+
+    shard = first / meta["tensors"][1]
+    data = bytearray(shard.read_bytes())
+    data[-1] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    with pytest.raises(TrainError, match=rf"names {shard.name}, which is missing or has another sha256"):
+        load_checkpoint(first)
+    capsys.readouterr()
+    assert main(args + ["-o", str(first)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "another sha256" in err[0]
