@@ -70,6 +70,7 @@ __all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_pattern
            "CHECKPOINT_SHARD_BYTES", "CHECKPOINT_JSON", "heldout_losses", "blind_loss"]
 
 CHECKPOINT_JSON = "checkpoint.json"
+_SHARD_PREFIX, _LEGACY_TENSORS = "checkpoint-", "checkpoint.safetensors"  # a shard's name; version 1's one file
 # tensor bytes per shard file: 15 MiB, so that a file with its safetensors header stays under 16 MiB (module docstring)
 CHECKPOINT_SHARD_BYTES = 15 * 2 ** 20
 # config fields that may change between a run and its resumption: they do not change the trained model
@@ -202,10 +203,15 @@ def _save_checkpoint(run_dir: Path, model, opt, step: int, config: TrainConfig, 
     before = _checkpoint_meta(run_dir)
     save = int(before.get("save", 0)) + 1 if before else 1  # new names every save: the old files stay valid
     shards, split = _shards(tensors, CHECKPOINT_SHARD_BYTES)
-    names = [f"checkpoint-{step:09d}-{save:04d}-{k:03d}.safetensors" for k in range(len(shards))]
-    for name, shard in zip(names, shards):
-        with atomic_path(run_dir / name) as tmp:
-            save_file(shard, str(tmp), metadata={"step": str(step)})
+    names = [f"{_SHARD_PREFIX}{step:09d}-{save:04d}-{k:03d}.safetensors" for k in range(len(shards))]
+    try:
+        for name, shard in zip(names, shards):
+            with atomic_path(run_dir / name) as tmp:
+                save_file(shard, str(tmp), metadata={"step": str(step)})
+    except BaseException:  # a failed save (a full disk) leaves none of its shards; the previous checkpoint stands
+        for name in names:
+            (run_dir / name).unlink(missing_ok=True)
+        raise
     meta = {"format": "hemicube-train-checkpoint", "version": 2, "step": int(step), "save": save,
             "tensors": names, "sha256": [file_sha256(run_dir / n) for n in names], "split": split,
             "config": config.to_json(), "rig_digest": rig_digest, "rng": rng[0], "world_size": ctx.world,
@@ -214,7 +220,7 @@ def _save_checkpoint(run_dir: Path, model, opt, step: int, config: TrainConfig, 
         meta["rng_ranks"] = rng
     write_bytes_atomic(run_dir / CHECKPOINT_JSON, json.dumps(meta).encode())
     # the files no checkpoint names now: the previous save's, and any a save killed before its JSON left
-    for old in [*run_dir.glob("checkpoint-*.safetensors"), run_dir / "checkpoint.safetensors"]:
+    for old in [*run_dir.glob(f"{_SHARD_PREFIX}*.safetensors"), run_dir / _LEGACY_TENSORS]:
         if old.name not in names:
             old.unlink(missing_ok=True)
     barrier(ctx)
@@ -241,7 +247,7 @@ def _shards(tensors: dict, limit: int) -> tuple[list[dict], dict]:
 
 
 def _tensor_files(meta: dict) -> list[str]:
-    """The tensor files a checkpoint.json names (version 1 named one file, checkpoint.safetensors, as a string)."""
+    """The tensor files a checkpoint.json names (version 1 named one file, _LEGACY_TENSORS, as a string)."""
     t = meta.get("tensors", [])
     return [t] if isinstance(t, str) else list(t)
 
@@ -298,7 +304,11 @@ def load_checkpoint(run_dir) -> tuple[dict, dict] | None:
     for name, shape in meta.get("split", {}).items():
         keys = sorted((k for k in tensors if k.rsplit("@", 1)[0] == name and "@" in k),
                       key=lambda k: int(k.rsplit("@", 1)[1]))
-        tensors[name] = torch.cat([tensors.pop(k) for k in keys]).reshape(shape)
+        try:
+            tensors[name] = torch.cat([tensors.pop(k) for k in keys]).reshape(shape)
+        except (RuntimeError, TypeError, ValueError):
+            raise TrainError(f"{run_dir / CHECKPOINT_JSON}: the pieces of {name} do not make its shape {shape}; "
+                             "restore the checkpoint or start a new run folder") from None
     return meta, tensors
 
 

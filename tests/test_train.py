@@ -196,6 +196,12 @@ def test_checkpoint_shards_stay_small_and_move_between_folders(run200, tmp_path,
     assert sorted(p.name for p in moved.glob("checkpoint-*.safetensors")) == sorted(meta_b["tensors"])
     assert not set(meta["tensors"]) & set(meta_b["tensors"])  # every save writes new names
 
+    bad = dict(meta, split={**meta["split"], next(iter(meta["split"])): [7, 7, 7]})  # a JSON edited by hand
+    (first / CHECKPOINT_JSON).write_text(json.dumps(bad))
+    with pytest.raises(TrainError, match="do not make its shape"):
+        load_checkpoint(first)
+    (first / CHECKPOINT_JSON).write_text(json.dumps(meta))
+
     shard = first / meta["tensors"][1]
     data = bytearray(shard.read_bytes())
     data[-1] ^= 0xFF
@@ -206,3 +212,23 @@ def test_checkpoint_shards_stay_small_and_move_between_folders(run200, tmp_path,
     assert main(args + ["-o", str(first)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "another sha256" in err[0]
+
+
+def test_a_failed_save_leaves_no_shard(tmp_path, monkeypatch):
+    """A save that fails part-way (a full disk) removes the shards it wrote; no checkpoint names them."""
+    import safetensors.torch
+
+    real, calls = safetensors.torch.save_file, []
+
+    def failing(tensors, path, metadata=None):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        real(tensors, path, metadata=metadata)
+
+    monkeypatch.setattr(train_module, "CHECKPOINT_SHARD_BYTES", 256 * 1024)
+    monkeypatch.setattr(safetensors.torch, "save_file", failing)
+    run = tmp_path / "run"
+    with pytest.raises(OSError, match="No space left"):
+        train(TrainConfig(rig="mini", steps=1), run, progress=False)
+    assert len(calls) == 2 and not list(run.glob("checkpoint*")) and load_checkpoint(run) is None
