@@ -11,7 +11,9 @@ early stopping, reference §4, in batches of 16,384 texels, TF32 products on CUD
 paper's fixed iteration counts (100/50/200), the same work per texel whatever the data; and as the default in
 float32, whose median per-texel objective the default's must match within 1% (issue #12's rule for a faster
 precision; a check). The baseline is the paper's counts in batches of 100 texels (the released code's batching)
-on a subset, per texel. The device's used memory is polled throughout (twin.bench.PeakDeviceMemory: Warp's and
+on a subset, per texel. The fit runs twice, with FitConfig's defaults (its Jacobian's projections in TF32 on CUDA)
+and in float32, whose median per-texel loss the default's must match within 1% (the same rule; a check). The
+device's used memory is polled throughout (twin.bench.PeakDeviceMemory: Warp's and
 torch's allocations together).
 """
 from __future__ import annotations
@@ -101,6 +103,7 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     from twin.bench import PeakDeviceMemory, finish_checks, same_work
 
     from .finetune import FinetuneConfig
+    from .fitting import FitConfig
     from .network import AcquisitionNet, count_parameters
     from .pipeline import load_network
     from .train import TrainConfig
@@ -126,8 +129,9 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     if dev.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats(dev)
     with PeakDeviceMemory(dev) as memory:
-        t_decode, runs, ft_seconds, baseline, check, fit, t_fit = _timed_stages(model, rig, learned, lines, pos, W,
-                                                                               exact, dev, baseline_texels)
+        t_decode, runs, ft_seconds, baseline, check, fits = _timed_stages(model, rig, learned, lines, pos, W, exact,
+                                                                          dev, baseline_texels)
+    (fit, t_fit), (fit32, t_fit32) = fits["default"], fits["float32"]
     torch_peak = torch.cuda.max_memory_allocated(dev) / 2 ** 20 if dev.startswith("cuda") else None
     ft, t_finetune = runs["paper_counts"], ft_seconds["paper_counts"]
     nb, t_finetune_ref, full_diff = baseline
@@ -136,10 +140,13 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     losses = {"finetune_default": _median_line_energy(model, runs["default"].latent, lines, W),
               "finetune_paper_counts": _median_line_energy(model, ft.latent, lines, W),
               "finetune_default_float32": _median_line_energy(model, runs["default_float32"].latent, lines, W),
-              "fitting": float(np.median(fit.info["texel_loss"]))}
+              "fitting": float(np.median(fit.info["texel_loss"])),
+              "fitting_float32": float(np.median(fit32.info["texel_loss"]))}
     # issue #12's rule for a faster precision: the median per-texel objective within 1% of float32's
     precision = same_work("finetune_default_vs_float32_median_objective", [losses["finetune_default"]],
                           [losses["finetune_default_float32"]], rtol=PRECISION_RTOL)
+    fit_precision = same_work("fitting_default_vs_float32_median_loss", [losses["fitting"]],
+                              [losses["fitting_float32"]], rtol=PRECISION_RTOL)
     return finish_checks({
         "bench": "reconstruct", "rig": rig.name, "device": torch.cuda.get_device_name(0) if dev.startswith("cuda")
         else "cpu", "texels": texels, "network": source,
@@ -154,6 +161,8 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
         "finetune_precision": FinetuneConfig().precision,
         "finetune_float32": {"seconds": ft_seconds["default_float32"], "iterations": runs["default_float32"].iterations,
                              "speedup_of_default": ft_seconds["default_float32"] / ft_seconds["default"]},
+        "fit_precision": FitConfig().precision,
+        "fitting_float32": {"seconds": t_fit32, "speedup_of_default": t_fit32 / t_fit},
         "median_texel_loss": losses,
         "peak_device_memory_mib": memory.peak_mib,
         "torch_max_allocated_mib": torch_peak,
@@ -161,7 +170,7 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
                                        "per_texel_ratio_vs_batched": (t_finetune_ref / nb) / (t_finetune / texels),
                                        "full_passes_max_diff_of_max": full_diff,
                                        "check_iterations": list(CHECK_ITERATIONS)},
-    }, [check, precision])
+    }, [check, precision, fit_precision])
 
 
 def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_texels: int):
@@ -217,11 +226,18 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
     full_a = simulate_lines(model, ft_ref.latent, W)
     full_b = simulate_lines(model, runs["paper_counts"].latent[:nb], W)
     full_diff = float(np.max(np.abs(full_a - full_b)) / max(float(np.max(np.abs(full_b))), 1e-30))
-    t = time.perf_counter()
     lumi = exact if exact is not None else decoded_lumitexels(model, runs["default"].latent)
-    fit = fit_ggx(rig, pos, lumi, lines=lines, line_weights=W, config=FitConfig(device=dev))
-    sync()
-    return t_decode, runs, ft_seconds, (nb, t_finetune_ref, full_diff), check, fit, time.perf_counter() - t
+    few = min(64, len(pos))  # warm-up of both precisions, untimed, as fine-tuning's above
+    for precision in PRECISIONS:
+        fit_ggx(rig, pos[:few], lumi if callable(lumi) else lumi[:few], lines=lines[:few], line_weights=W,
+                config=FitConfig(device=dev, iterations=1, precision=precision))
+    fits = {}
+    for name, cfg in (("default", FitConfig(device=dev)), ("float32", FitConfig(device=dev, precision="float32"))):
+        t = time.perf_counter()
+        fit = fit_ggx(rig, pos, lumi, lines=lines, line_weights=W, config=cfg)
+        sync()
+        fits[name] = (fit, time.perf_counter() - t)
+    return t_decode, runs, ft_seconds, (nb, t_finetune_ref, full_diff), check, fits
 
 
 def _median_line_energy(model, latent, lines, W) -> float:

@@ -152,7 +152,7 @@ class FinetuneConfig:
                     objective 0.31% above float32's, inside the issue's 1% (docs/performance.md; at the paper's
                     fixed 350 steps, source "paper", it is 1.5%: use float32 there). On the CPU every
                     product is float32 whatever the setting (the same bits). Only fine-tuning: the decoded
-                    lumitexels the fit reads, and the fit, stay float32.
+                    lumitexels the fit reads stay float32 (the fit has its own FitConfig.precision).
     """
 
     source: str = "code"

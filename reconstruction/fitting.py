@@ -112,6 +112,7 @@ from twin.materials.samples import ALPHA_RANGE, RHO_D_RANGE, RHO_S_RANGE, SVBRDF
 
 from . import fit_sums
 from .data import LUMITEXEL_SCALE
+from .finetune import PRECISIONS
 
 __all__ = ["FitConfig", "FitResult", "fit_ggx", "fit_method", "to_maps", "FITTING_METHODS", "METHODS", "LOSSES"]
 
@@ -166,6 +167,12 @@ class FitConfig:
     loss: str = "log1p"  # ours, measured
     seed: int = 0  # the neural method's initialisation and batches (the direct method draws nothing)
     device: str = "cpu"
+    # direct, analytic Jacobian (ours, issue #12): the projections of the bases' derivatives onto the photos' weights
+    # on a CUDA device in TF32 ("tf32", the tensor cores' 10-bit mantissa) or "float32". Only the Gauss-Newton
+    # system's direction: the loss that accepts or refuses a step and the closed-form albedos stay float32, so
+    # the fixed point of Levenberg-Marquardt does not move (docs/performance.md: the fit's median per-texel loss
+    # against float32's, checked by `hemicube bench reconstruct`). The CPU's products are float32 either way.
+    precision: str = "tf32"
     camera: str = "primary"  # the view the lumitexels were decoded for (reference §5: primary only)
     secondary_camera: str = "secondary"  # the view of fit_ggx's `secondary` photos (ours)
     # initial candidates (ours): roughness levels (log-spaced inside the reference range), tangent angles
@@ -181,6 +188,8 @@ class FitConfig:
             raise ValueError(f"FitConfig.method must be one of {METHODS}, got {self.method!r}")
         if self.loss not in LOSSES:
             raise ValueError(f"FitConfig.loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"FitConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.jacobian not in JACOBIANS:
             raise ValueError(f"FitConfig.jacobian must be one of {JACOBIANS}, got {self.jacobian!r}")
         for k, least in (("iterations", 0), ("batch", 1)):  # 0 iterations: the initialisation alone
@@ -540,6 +549,14 @@ def _project(g: "_Photos", x: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor
     return out.movedim(-2, 0)
 
 
+def _project_normal_rows(g: "_Photos", dD: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
+    """_project of the diffuse basis's derivatives dD (n, 5, L): only the normal's two rows are projected, the
+    others are zeros (the diffuse lobe does not depend on the tangent or the roughness, so basis_jvp's rows along
+    theta and the log alphas are exact zeros; projecting them was 3/10 of the Jacobian's projections)."""
+    out = _project(g, dD[:, :2], ratio)
+    return torch.cat([out, out.new_zeros(*out.shape[:2], dD.shape[1] - 2, out.shape[3])], 2)
+
+
 def _photo_bases(prob: _Problem, geom: dict, val: torch.Tensor) -> list:
     """For each photo group (prob.photos): (W D, W S), each (3, n, K), the bases of its camera (val for
     config.camera, one more launch for another) under its weights; [] without photos."""
@@ -827,18 +844,46 @@ def _forward_difference(prob: _Problem, q: torch.Tensor, r: torch.Tensor, to_num
 def _frame_derivatives(prob: _Problem, q: torch.Tensor) -> tuple[dict, torch.Tensor, torch.Tensor]:
     """The geometry of the numbers q and the inputs of twin.optics.jvp.basis_jvp for the 5 numbers' directions:
     d_frame (n, 5, 3, 3), the derivatives of the local frame's rows (t, n x t, n) along u, v, theta (zero along
-    the log alphas), and d_log_alpha (n, 5, 2)."""
-    def rows(g):
-        f = _frame_of(g, prob.frame)
-        return torch.stack([f["tangent"], torch.linalg.cross(f["normal"], f["tangent"], dim=-1), f["normal"]], 1)
+    the log alphas), and d_log_alpha (n, 5, 2). In closed form, the chain rule through _frame_of's steps (ours:
+    torch.func's forward mode took 60 ms a call for 2,304 texels on one CPU thread, 8% of the fit, against ~1 ms;
+    tests/test_fitting.py checks it against torch.func.jacfwd of _frame_of)."""
+    n_tex = q.shape[0]
+    N, X, Y = (f.expand(n_tex, 3) for f in prob.frame)
 
-    n = q.shape[0]
-    g3 = q[:, :3]
-    d_frame = torch.zeros(n, GEOMETRY_SIZE, 3, 3, dtype=q.dtype, device=q.device)
-    # the three directions u, v, theta in one batched forward-mode pass (three passes were launch-bound on a GPU)
-    tangents = torch.eye(3, dtype=q.dtype, device=q.device)[:, None].expand(3, n, 3)
-    d_frame[:, :3] = torch.func.vmap(lambda v: torch.func.jvp(rows, (g3,), (v,))[1])(tangents).transpose(0, 1)
-    d_log_alpha = torch.zeros(n, GEOMETRY_SIZE, 2, dtype=q.dtype, device=q.device)
+    def dot(a, b):
+        return (a * b).sum(-1, keepdim=True)
+
+    def cross(a, b):
+        return torch.linalg.cross(a, b, dim=-1)
+
+    p = N + q[:, 0:1] * X + q[:, 1:2] * Y
+    pn = torch.linalg.vector_norm(p, dim=-1, keepdim=True)
+    n = p / pn
+    k, c = cross(N, n), dot(n, N)  # _base_tangent's Rodrigues rotation
+    kx = dot(k, X)
+    t0 = X * c + cross(k, X) + k * (kx / (1 + c))
+    th = q[:, 2:3]
+    cos, sin = torch.cos(th), torch.sin(th)
+    nt0 = cross(n, t0)
+    t = cos * t0 + sin * nt0
+    tp = t - dot(t, n) * n
+    tl = torch.linalg.vector_norm(tp, dim=-1, keepdim=True)
+    tangent = tp / tl
+
+    def rows(dn, dt):
+        """The frame rows' derivatives for the derivatives dn of n and dt of the unprojected tangent t."""
+        dtp = dt - (dot(dt, n) + dot(t, dn)) * n - dot(t, n) * dn
+        dtan = (dtp - tangent * dot(tangent, dtp)) / tl
+        return torch.stack([dtan, cross(dn, tangent) + cross(n, dtan), dn], 1)
+
+    d_frame = torch.zeros(n_tex, GEOMETRY_SIZE, 3, 3, dtype=q.dtype, device=q.device)
+    for j, axis in enumerate((X, Y)):  # u, v: n moves, and t0 with it
+        dn = (axis - n * dot(n, axis)) / pn
+        dk, dc = cross(N, dn), dot(dn, N)
+        dt0 = X * dc + cross(dk, X) + dk * (kx / (1 + c)) + k * (dot(dk, X) / (1 + c) - kx * dc / (1 + c) ** 2)
+        d_frame[:, j] = rows(dn, cos * dt0 + sin * (cross(dn, t0) + cross(n, dt0)))
+    d_frame[:, 2] = rows(torch.zeros_like(n), cos * nt0 - sin * t0)  # theta turns t about n
+    d_log_alpha = torch.zeros(n_tex, GEOMETRY_SIZE, 2, dtype=q.dtype, device=q.device)
     d_log_alpha[:, 3, 0] = d_log_alpha[:, 4, 1] = 1.0
     return _log_geometry(q, prob.frame), d_frame, d_log_alpha
 
@@ -871,6 +916,8 @@ def _linearisation(prob: _Problem, q: torch.Tensor):
     config.camera's grey bases val (2, n, L) and their derivatives dD0, dS0 (n, 5, L), the shared albedos rd, rs
     (n, 3) and their derivatives da, db (n, 5, 3), and each photo group's residuals (n, 3 K) and Jacobian rows
     (n, 5, 3 K)."""
+    from twin.optics.torch_ops import tf32_products
+
     c = prob.config
     geom, d_frame, d_log_alpha = _frame_derivatives(prob, q)
     photos = prob.photos if prob.has_lines else ()
@@ -880,8 +927,9 @@ def _linearisation(prob: _Problem, q: torch.Tensor):
             grey[cam] = _grey(prob, geom, cam, (d_frame, d_log_alpha))
     val, dD0, dS0 = grey[c.camera]
     pb = [_photo_pair(prob, g, grey[g.camera][0]) for g in photos]
-    dpb = [(_project(g, grey[g.camera][1], prob.ratio[0]), _project(g, grey[g.camera][2], prob.ratio[1]))
-           for g in photos]  # (3, n, 5, K) each
+    with tf32_products(c.precision == "tf32"):  # FitConfig.precision: the system's direction only
+        dpb = [(_project_normal_rows(g, grey[g.camera][1], prob.ratio[0]),
+                _project(g, grey[g.camera][2], prob.ratio[1])) for g in photos]  # (3, n, 5, K) each
     sums, dsums = _albedo_sums(prob, val, pb, (dD0, dS0, dpb))
     rd, rs, own = _projected(prob, val, pb, sums)
     da, db = _albedo_derivatives(sums, dsums, rd, rs, c.rho_s_max)
@@ -1004,34 +1052,58 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
     return q
 
 
-def _losses(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
-    """(n,) per-texel loss of the direct method's numbers q, in chunks of `batch` texels."""
+def _losses(prob: _Problem, q: torch.Tensor, texels: torch.Tensor | None = None) -> torch.Tensor:
+    """(n,) per-texel loss of the direct method's numbers q (n, 5), in chunks of `batch` texels; with `texels` (n,),
+    q's rows are those texels' (a chunk's lumitexels are asked for when it is evaluated, never all at once)."""
+    size = _chunk_size(prob, prob.config.batch)
+    rows = torch.arange(q.shape[0], device=q.device).split(size)
     with torch.no_grad():
-        return torch.cat([_loss(prob.part(i), q[i]) for i in _chunks(prob, prob.config.batch)])
+        return torch.cat([_loss(prob.part(i if texels is None else texels[i]), q[i]) for i in rows])
 
 
-def _propagate(prob: _Problem, q: torch.Tensor, grid_shape) -> tuple[torch.Tensor, int]:
+def _propagate(prob: _Problem, q: torch.Tensor, grid_shape, changed: torch.Tensor | None = None):
     """One round of neighbour propagation (ours, as PatchMatch propagates matches): each texel tries the
     fitted numbers of its 4 grid neighbours; where one lowers its loss by more than 0.1%, Levenberg-Marquardt
     restarts from it. Why: LM from the initial candidates lands in a local minimum on a few % of the texels
     of strongly anisotropic or narrow-lobed samples (a rotated tangent, a swapped roughness), isolated texels
-    whose neighbours, of the same material, hold the right basin. Returns (q, texels restarted)."""
+    whose neighbours, of the same material, hold the right basin. `changed` (n,) bool: the texels the round
+    before restarted (None: the first round, every texel); only those and their neighbours are tried, since
+    every other texel would compare the same numbers as that round did and decide as it did (a 1024^2 paper-rig
+    sample restarts ~0.4% of its texels in the first round, and the second round over all of them cost 20 s
+    of an H100). Returns (q, texels restarted, the mask of those texels)."""
     R, C = (int(v) for v in grid_shape)
-    own = _losses(prob, q)
-    best, best_loss = q.clone(), own.clone()
-    grid = q.reshape(R, C, GEOMETRY_SIZE)
     rows, cols = torch.arange(R, device=q.device), torch.arange(C, device=q.device)
-    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        cand = grid[(rows + dr).clamp(0, R - 1)][:, (cols + dc).clamp(0, C - 1)].reshape(-1, GEOMETRY_SIZE)
-        loss = _losses(prob, cand)
+    shifts = ((1, 0), (-1, 0), (0, 1), (0, -1))
+
+    def shifted(grid, dr, dc):  # each texel's neighbour along (dr, dc), itself at the edge
+        return grid[(rows + dr).clamp(0, R - 1)][:, (cols + dc).clamp(0, C - 1)].reshape(R * C, *grid.shape[2:])
+
+    if changed is None:
+        region = torch.arange(prob.n, device=q.device)
+    else:
+        c = changed.reshape(R, C)
+        near = changed.clone()
+        for dr, dc in shifts:
+            near |= shifted(c, dr, dc)
+        region = torch.nonzero(near).flatten()
+    own = _losses(prob, q[region], region)
+    best, best_loss = q[region].clone(), own.clone()
+    grid = q.reshape(R, C, GEOMETRY_SIZE)
+    for dr, dc in shifts:
+        cand = shifted(grid, dr, dc)[region]
+        loss = _losses(prob, cand, region)
         better = loss < best_loss
         best, best_loss = torch.where(better[:, None], cand, best), torch.where(better, loss, best_loss)
-    moved = torch.nonzero(best_loss < own * (1 - 1e-3)).flatten()
+    sel = torch.nonzero(best_loss < own * (1 - 1e-3)).flatten()
+    moved = region[sel]
     # restarted in chunks like every other pass: paper stock at 1024^2 restarts so many texels that all at once
     # asked an H100 for 26 GB more than it had (2026-11-26)
-    for idx in (moved.split(_chunk_size(prob, prob.config.batch)) if moved.numel() else ()):
-        q[idx] = _levenberg_marquardt(prob.part(idx), best[idx], np.zeros(prob.config.steps))
-    return q, int(moved.numel())
+    for k in (sel.split(_chunk_size(prob, prob.config.batch)) if sel.numel() else ()):
+        idx = region[k]
+        q[idx] = _levenberg_marquardt(prob.part(idx), best[k], np.zeros(prob.config.steps))
+    mask = torch.zeros(prob.n, dtype=torch.bool, device=q.device)
+    mask[moved] = True
+    return q, int(moved.numel()), mask
 
 
 def _final(prob: _Problem, q: torch.Tensor, sums: list | None = None) -> list:
@@ -1339,14 +1411,16 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None) -> FitResult:
             last_save = time.perf_counter()
     restarted = state["restarted"]
     if state["phase"] in ("chunks", "propagation"):
+        changed = state.get("changed")  # None: the first round, or a checkpoint saved before rounds kept it
+        changed = torch.as_tensor(np.asarray(changed), device=q.device) if restarted and changed is not None else None
         for _ in range(c.propagation - len(restarted) if grid_shape is not None else 0):
             if restarted and not restarted[-1]:
                 break
             t2 = time.perf_counter()
-            q, moved = _propagate(prob, q, grid_shape)
+            q, moved, changed = _propagate(prob, q, grid_shape, changed)
             restarted.append(moved)
             seconds["propagation"] += time.perf_counter() - t2
-            save(restarted=restarted)
+            save(restarted=restarted, changed=changed.cpu().numpy())
     t3 = time.perf_counter()
     parts = _final(prob, q)
     prior = {}

@@ -47,9 +47,14 @@ def test_bench_reconstruct_baseline_matches_and_drift_fails(capsys, monkeypatch)
     rc, res, _ = _run(RECON, capsys)
     assert rc == 0 and res["passed"]
     assert [c["check"] for c in res["checks"]] == ["finetune_batch100_vs_batched_lines_few_steps",
-                                                   "finetune_default_vs_float32_median_objective"]
+                                                   "finetune_default_vs_float32_median_objective",
+                                                   "fitting_default_vs_float32_median_loss"]
     assert res["finetune_precision"] == "tf32" and res["finetune_float32"]["seconds"] > 0
+    assert res["fit_precision"] == "tf32" and res["fitting_float32"]["seconds"] > 0
+    # on the CPU every product is float32: the two fits are the same computation
+    assert res["median_texel_loss"]["fitting"] == res["median_texel_loss"]["fitting_float32"]
     import reconstruction.finetune as ft
+    import reconstruction.fitting as fitting
 
     plain = ft.finetune
 
@@ -68,9 +73,19 @@ def test_bench_reconstruct_baseline_matches_and_drift_fails(capsys, monkeypatch)
             r.latent = r.latent + 0.5
         return r
 
+    plain_fit = fitting.fit_ggx
+
+    def worse_fit(*a, config, **kw):  # and the default precision's fit ends 5% above float32's
+        r = plain_fit(*a, config=config, **kw)
+        if config.precision != "float32":
+            r.info["texel_loss"] = r.info["texel_loss"] * 1.05
+        return r
+
     monkeypatch.setattr(ft, "finetune", worse)
+    monkeypatch.setattr(fitting, "fit_ggx", worse_fit)
     rc, res, err = _run(RECON, capsys)
     assert rc == 1 and "finetune_default_vs_float32_median_objective" in err
+    assert "fitting_default_vs_float32_median_loss" in err
 
 
 FIT = ["bench", "fit-forward", "--rig", "mini", "--texels", "32", "--repeats", "1"]

@@ -259,6 +259,32 @@ def test_roughness_tensor_coordinates_round_trip():
     assert float(iso[0, 3].abs() + iso[0, 4].abs()) == 0.0
 
 
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_frame_derivatives_match_forward_mode_autodiff(dtype, tol):
+    """_frame_derivatives' closed form (the analytic Jacobian's input) against torch.func.jacfwd of _frame_of on
+    a tilted sample frame, every tangent angle and tilts to ~30 degrees; the log alphas move no row."""
+    from types import SimpleNamespace
+
+    g = torch.Generator().manual_seed(5)
+    N = fitting._unit(torch.tensor([0.1, -0.2, 1.0], dtype=torch.float64))
+    X = fitting._unit(torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), N, dim=-1))
+    frame = torch.stack([N, X, torch.linalg.cross(N, X, dim=-1)]).to(dtype)
+    q = (torch.randn(200, 5, generator=g, dtype=torch.float64) * torch.tensor([0.4, 0.4, 2.0, 0.5, 0.5],
+                                                                              dtype=torch.float64)).to(dtype)
+    geom, d_frame, d_log_alpha = fitting._frame_derivatives(SimpleNamespace(frame=frame), q)
+
+    def rows(g3):
+        f = fitting._frame_of(g3[None], frame)
+        return torch.stack([f["tangent"], torch.linalg.cross(f["normal"], f["tangent"], dim=-1), f["normal"]], 1)[0]
+
+    ref = torch.stack([torch.func.jacfwd(rows)(q[i, :3]) for i in range(q.shape[0])]).permute(0, 3, 1, 2)
+    assert float((d_frame[:, :3] - ref).abs().max()) < tol
+    assert not d_frame[:, 3:].any()
+    assert torch.equal(d_log_alpha[:, 3:], torch.eye(2, dtype=dtype).expand(200, 2, 2))
+    f = fitting._frame_of(q, frame)
+    assert torch.equal(geom["normal"], f["normal"]) and torch.equal(geom["tangent"], f["tangent"])
+
+
 @pytest.mark.parametrize("device", ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else []))
 def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     """A 6 x 8 grid: a rough, weak lobe on a bright diffuse (paper stock: the lobe is ~1% of a line photo)
@@ -331,12 +357,53 @@ def test_propagation_restarts_in_chunks(mini, fitted, monkeypatch):
         return lm(part, q0, history)
 
     monkeypatch.setattr(fitting, "_levenberg_marquardt", spy)
-    whole, moved = fitting._propagate(prob, q.clone(), GRID)
+    whole, moved, _ = fitting._propagate(prob, q.clone(), GRID)
     assert sizes == [moved] and moved >= 3
     monkeypatch.setattr(fitting, "AUTO_CHUNK_PAIRS", 2 * prob.leds)
     sizes.clear()
-    chunked, moved_chunked = fitting._propagate(prob, q.clone(), GRID)
+    chunked, moved_chunked, _ = fitting._propagate(prob, q.clone(), GRID)
     assert moved_chunked == moved and max(sizes) == 2 and sum(sizes) == moved
     # float32 products of other sizes round differently (measured: 9e-6 at most); a texel written back to the wrong
     # place would be off by the numbers' own scale, ~0.5
     np.testing.assert_allclose(chunked.numpy(), whole.numpy(), rtol=0, atol=1e-3)
+
+
+def test_a_later_propagation_round_tries_only_what_changed_and_decides_as_a_whole_round(mini, fitted, monkeypatch):
+    """A round after the first tries only the texels the round before restarted and their 4 neighbours (the others
+    would compare the numbers that round compared): it restarts the same texels to the same numbers as a round
+    over every texel, and evaluates far fewer. A 6 x 6 grid of the fitted texels, three of them scrambled."""
+    truth, (m, lines, w), res = fitted
+    R, C = 6, 6
+    tile = np.arange(R * C) % len(m)
+    prob = fitting._problem(mini, truth["position"][tile], m[tile], lines[tile], w, (R, C), FitConfig(iterations=3),
+                            None)
+    n, t = (torch.as_tensor(getattr(res, k)[tile], dtype=prob.pos.dtype) for k in ("normal", "tangent"))
+    N, X, Y = prob.frame
+    t0 = fitting._base_tangent(n, prob.frame)
+    theta = torch.atan2((torch.linalg.cross(n, t0, dim=-1) * t).sum(-1), (t0 * t).sum(-1))
+    q = torch.stack([(n @ X) / (n @ N), (n @ Y) / (n @ N), theta,
+                     *(torch.log(torch.as_tensor(getattr(res, k)[tile], dtype=prob.pos.dtype))
+                       for k in ("alpha_x", "alpha_y"))], 1)
+    q[[7, 20, 33]] = torch.as_tensor(np.random.default_rng(4).normal(0.0, 0.5, (3, 5)), dtype=q.dtype)
+    q1, moved1, changed = fitting._propagate(prob, q.clone(), (R, C))
+    assert moved1 >= 1 and int(changed.sum()) == moved1
+    tried, losses = [], fitting._losses
+
+    def spy(prob_, x, texels=None):
+        tried.append(x.shape[0])
+        return losses(prob_, x, texels)
+
+    monkeypatch.setattr(fitting, "_losses", spy)
+    whole, moved_whole, mask_whole = fitting._propagate(prob, q1.clone(), (R, C))
+    assert tried == [prob.n] * 5
+    tried.clear()
+    part, moved_part, mask_part = fitting._propagate(prob, q1.clone(), (R, C), changed)
+    grid = changed.reshape(R, C)
+    near = grid.clone()
+    near[1:] |= grid[:-1]
+    near[:-1] |= grid[1:]
+    near[:, 1:] |= grid[:, :-1]
+    near[:, :-1] |= grid[:, 1:]
+    assert tried == [int(near.sum())] * 5 and int(near.sum()) < prob.n
+    assert moved_part == moved_whole and torch.equal(mask_part, mask_whole)
+    np.testing.assert_allclose(part.numpy(), whole.numpy(), rtol=0, atol=1e-3)
