@@ -12,7 +12,6 @@ nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -l 2 > "$out/e2
 smi=$!
 {
   echo "device $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)"
-  echo "commit $(git rev-parse HEAD 2>/dev/null || echo unknown)"
   echo "start $(date +%s.%N)"
   python -m hemicube.cli capture --rig paper --device cuda --resolution 1024 -o "$work/S" --no-progress
   echo "capture rc=$? $(date +%s.%N)"
