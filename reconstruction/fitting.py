@@ -465,14 +465,30 @@ def _base_tangent(n: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
     return X * c + torch.linalg.cross(k, X, dim=-1) + k * ((k * X).sum(-1, keepdim=True) / (1 + c))
 
 
-def _frame_of(g: torch.Tensor, frame: torch.Tensor) -> dict:
-    """The first 3 geometry numbers [u, v, theta] -> normal, tangent (unit, world)."""
+def _frame_steps(g: torch.Tensor, frame: torch.Tensor) -> dict:
+    """_frame_of's steps for the first 3 geometry numbers [u, v, theta]: the length pn of p = N + u X + v Y, the
+    normal n = p / pn, the base tangent t0 (_base_tangent), cos and sin of theta, n x t0, the turned tangent
+    t = cos t0 + sin n x t0, its part tp normal to n and that part's length tl; "normal" and "tangent" = tp / tl
+    (unit, world). _frame_derivatives differentiates these same steps."""
     N, X, Y = frame
-    n = _unit(N + g[:, 0:1] * X + g[:, 1:2] * Y)
+    p = N + g[:, 0:1] * X + g[:, 1:2] * Y
+    pn = torch.linalg.vector_norm(p, dim=-1, keepdim=True)
+    n = p / pn
     t0 = _base_tangent(n, frame)
     th = g[:, 2:3]
-    t = torch.cos(th) * t0 + torch.sin(th) * torch.linalg.cross(n, t0, dim=-1)
-    return {"normal": n, "tangent": _unit(t - (t * n).sum(-1, keepdim=True) * n)}
+    cos, sin = torch.cos(th), torch.sin(th)
+    nt0 = torch.linalg.cross(n, t0, dim=-1)
+    t = cos * t0 + sin * nt0
+    tp = t - (t * n).sum(-1, keepdim=True) * n
+    tl = torch.linalg.vector_norm(tp, dim=-1, keepdim=True)
+    return {"pn": pn, "t0": t0, "cos": cos, "sin": sin, "nt0": nt0, "t": t, "tl": tl,
+            "normal": n, "tangent": tp / tl}
+
+
+def _frame_of(g: torch.Tensor, frame: torch.Tensor) -> dict:
+    """The first 3 geometry numbers [u, v, theta] -> normal, tangent (unit, world)."""
+    f = _frame_steps(g, frame)
+    return {"normal": f["normal"], "tangent": f["tangent"]}
 
 
 def _geometry(g: torch.Tensor, frame: torch.Tensor, config: FitConfig) -> dict:
@@ -483,9 +499,12 @@ def _geometry(g: torch.Tensor, frame: torch.Tensor, config: FitConfig) -> dict:
     return {**_frame_of(g, frame), "alpha_x": alpha[:, 0], "alpha_y": alpha[:, 1]}
 
 
-def _log_geometry(q: torch.Tensor, frame: torch.Tensor) -> dict:
-    """(n, 5) numbers [u, v, theta, log alpha_x, log alpha_y] (the direct method's) -> the geometry."""
-    return {**_frame_of(q, frame), "alpha_x": torch.exp(q[:, 3]), "alpha_y": torch.exp(q[:, 4])}
+def _log_geometry(q: torch.Tensor, frame: torch.Tensor, steps: dict | None = None) -> dict:
+    """(n, 5) numbers [u, v, theta, log alpha_x, log alpha_y] (the direct method's) -> the geometry; `steps`: the
+    numbers' _frame_steps, when the caller has them."""
+    f = steps if steps is not None else _frame_steps(q, frame)
+    return {"normal": f["normal"], "tangent": f["tangent"], "alpha_x": torch.exp(q[:, 3]),
+            "alpha_y": torch.exp(q[:, 4])}
 
 
 def _albedo_numbers(raw: torch.Tensor, config: FitConfig) -> dict:
@@ -820,9 +839,10 @@ def _chunk_size(prob: _Problem, size: int | None) -> int:
     return size or min(prob.n, _auto_chunk(prob.leds))
 
 
-def _chunks(prob: _Problem, size: int | None):
-    """Contiguous texel index ranges of at most `size` (None: AUTO_CHUNK_PAIRS texel-LED pairs a range)."""
-    return torch.arange(prob.n, device=prob.pos.device).split(_chunk_size(prob, size))
+def _chunks(prob: _Problem, size: int | None, count: int | None = None):
+    """Contiguous index ranges of at most `size` (None: AUTO_CHUNK_PAIRS texel-LED pairs a range) over the texels,
+    or over `count` rows."""
+    return torch.arange(prob.n if count is None else count, device=prob.pos.device).split(_chunk_size(prob, size))
 
 
 def _result(prob: _Problem, geom: dict, rho_d, rho_s, history, t_start, info) -> FitResult:
@@ -845,7 +865,7 @@ def _frame_derivatives(prob: _Problem, q: torch.Tensor) -> tuple[dict, torch.Ten
     """The geometry of the numbers q and the inputs of twin.optics.jvp.basis_jvp for the 5 numbers' directions:
     d_frame (n, 5, 3, 3), the derivatives of the local frame's rows (t, n x t, n) along u, v, theta (zero along
     the log alphas), and d_log_alpha (n, 5, 2). In closed form, the chain rule through _frame_of's steps (ours:
-    torch.func's batched forward mode took 9 ms a call for 2,304 texels on one CPU thread, this 3 ms;
+X
     tests/test_fitting.py checks it against torch.func.jacfwd of _frame_of)."""
     n_tex = q.shape[0]
     N, X, Y = (f.expand(n_tex, 3) for f in prob.frame)
@@ -856,19 +876,11 @@ def _frame_derivatives(prob: _Problem, q: torch.Tensor) -> tuple[dict, torch.Ten
     def cross(a, b):
         return torch.linalg.cross(a, b, dim=-1)
 
-    p = N + q[:, 0:1] * X + q[:, 1:2] * Y
-    pn = torch.linalg.vector_norm(p, dim=-1, keepdim=True)
-    n = p / pn
+    f = _frame_steps(q, prob.frame)
+    n, t0, nt0, t, tl, tangent = (f[k] for k in ("normal", "t0", "nt0", "t", "tl", "tangent"))
+    cos, sin = f["cos"], f["sin"]
     k, c = cross(N, n), dot(n, N)  # _base_tangent's Rodrigues rotation
     kx = dot(k, X)
-    t0 = X * c + cross(k, X) + k * (kx / (1 + c))
-    th = q[:, 2:3]
-    cos, sin = torch.cos(th), torch.sin(th)
-    nt0 = cross(n, t0)
-    t = cos * t0 + sin * nt0
-    tp = t - dot(t, n) * n
-    tl = torch.linalg.vector_norm(tp, dim=-1, keepdim=True)
-    tangent = tp / tl
 
     def rows(dn, dt):
         """The frame rows' derivatives for the derivatives dn of n and dt of the unprojected tangent t."""
@@ -878,14 +890,14 @@ def _frame_derivatives(prob: _Problem, q: torch.Tensor) -> tuple[dict, torch.Ten
 
     d_frame = torch.zeros(n_tex, GEOMETRY_SIZE, 3, 3, dtype=q.dtype, device=q.device)
     for j, axis in enumerate((X, Y)):  # u, v: n moves, and t0 with it
-        dn = (axis - n * dot(n, axis)) / pn
+        dn = (axis - n * dot(n, axis)) / f["pn"]
         dk, dc = cross(N, dn), dot(dn, N)
         dt0 = X * dc + cross(dk, X) + dk * (kx / (1 + c)) + k * (dot(dk, X) / (1 + c) - kx * dc / (1 + c) ** 2)
         d_frame[:, j] = rows(dn, cos * dt0 + sin * (cross(dn, t0) + cross(n, dt0)))
     d_frame[:, 2] = rows(torch.zeros_like(n), cos * nt0 - sin * t0)  # theta turns t about n
     d_log_alpha = torch.zeros(n_tex, GEOMETRY_SIZE, 2, dtype=q.dtype, device=q.device)
     d_log_alpha[:, 3, 0] = d_log_alpha[:, 4, 1] = 1.0
-    return _log_geometry(q, prob.frame), d_frame, d_log_alpha
+    return _log_geometry(q, prob.frame, f), d_frame, d_log_alpha
 
 
 def _albedo_derivatives(sums: list, dsums: list, a: torch.Tensor, b: torch.Tensor, rho_s_max: float):
@@ -1055,10 +1067,9 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
 def _losses(prob: _Problem, q: torch.Tensor, texels: torch.Tensor | None = None) -> torch.Tensor:
     """(n,) per-texel loss of the direct method's numbers q (n, 5), in chunks of `batch` texels; with `texels` (n,),
     q's rows are those texels' (a chunk's lumitexels are asked for when it is evaluated, never all at once)."""
-    size = _chunk_size(prob, prob.config.batch)
-    rows = torch.arange(q.shape[0], device=q.device).split(size)
     with torch.no_grad():
-        return torch.cat([_loss(prob.part(i if texels is None else texels[i]), q[i]) for i in rows])
+        return torch.cat([_loss(prob.part(i if texels is None else texels[i]), q[i])
+                          for i in _chunks(prob, prob.config.batch, q.shape[0])])
 
 
 def _propagate(prob: _Problem, q: torch.Tensor, grid_shape, changed: torch.Tensor | None = None):
@@ -1360,7 +1371,8 @@ def _resumed(checkpoint, prob: _Problem) -> dict | None:
     q, hist = np.asarray(state.get("q")), np.asarray(state.get("history"))
     if (state.get("phase") not in ("chunks", "propagation", "joint") or q.shape != (prob.n, GEOMETRY_SIZE)
             or hist.shape != (prob.config.steps,) or not np.isfinite(q).all()
-            or (state["phase"] == "joint" and np.shape(state.get("joint", {}).get("x")) != q.shape)):
+            or (state["phase"] == "joint" and np.shape(state.get("joint", {}).get("x")) != q.shape)
+            or ("changed" in state and np.shape(state["changed"]) != (prob.n,))):
         raise ValueError("the fit's checkpoint does not belong to this fit (another texel count or iteration count, "
                          "or non-finite numbers); remove it to start the fit again")
     return state

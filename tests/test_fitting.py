@@ -233,7 +233,8 @@ def test_bad_inputs(mini, fitted):
     with pytest.raises(ValueError, match="no camera"):
         fit_ggx(mini, pos, m, config=FitConfig(camera="nope"))
     for kw in ({"method": "lbfgs"}, {"loss": "l1"}, {"iterations": -1}, {"batch": 0}, {"lr": 0.0},
-               {"alpha_range": (0.5, 0.1)}, {"rho_s_max": 50.0}, {"lambda_lines": -1.0}, {"jacobian": "central"}):
+               {"alpha_range": (0.5, 0.1)}, {"rho_s_max": 50.0}, {"lambda_lines": -1.0}, {"jacobian": "central"},
+               {"precision": "bf16"}):
         with pytest.raises(ValueError, match="FitConfig"):
             FitConfig(**kw)
 

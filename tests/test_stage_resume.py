@@ -103,6 +103,14 @@ def test_a_tampered_or_foreign_state(mini, problem, tmp_path, monkeypatch):
 
     with pytest.raises(ValueError, match="does not belong to this fit"):
         _fit(mini, problem, Foreign())
+
+    class ForeignMask(Foreign):  # the right numbers, but a propagation mask of another texel count
+        def load(self):
+            return {"phase": "propagation", "chunks_done": 4, "q": np.zeros((R * C, 5), np.float32),
+                    "history": np.zeros(6), "restarted": [3], "changed": np.zeros(R * C + 1, bool)}
+
+    with pytest.raises(ValueError, match="does not belong to this fit"):
+        _fit(mini, problem, ForeignMask())
     with pytest.raises(ValueError, match="keeps no unfinished state"):
         ReconstructionFolder(folder).write_state("alignment", {"phase": "x"})
     pos, m, lines, w = problem
