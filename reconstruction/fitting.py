@@ -120,13 +120,16 @@ LOSSES = ("log1p", "mse")
 JACOBIANS = ("analytic", "forward")  # FitConfig.jacobian
 METHODS = ("direct", "neural")  # FITTING_METHODS below: one function each
 GEOMETRY_SIZE = 5  # [u, v, theta, a_x, a_y]
-# texel-LED pairs evaluated at once when FitConfig.batch is None (ours, memory): every texel of a mini-rig grid up
-# to 410^2 in one range; 5,461 texels on the paper rig. A pair costs the grey bases and their 5 derivatives of each
-# view (2 x 12 floats), the chunk's copy of its target (3 floats) and passing temporaries, about 8 GB a chunk here.
-# (Before the fit's sums moved into Warp, reconstruction.fit_sums, it stored (texels x LEDs x 3) tensors for the
-# albedo weights, the loss and each of 5 Jacobian rows, and held 2^25 pairs: 16,384 paper texels at once ran out of
-# an H100's 80 GB.)
-AUTO_CHUNK_PAIRS = 2 ** 26
+# texel-LED pairs evaluated at once when FitConfig.batch is None (ours, memory and speed): every texel of a mini-rig
+# grid up to 660^2 in one range; 16,384 texels on the paper rig. A pair costs the grey bases and their 5 derivatives
+# of each view (2 x 12 floats), the chunk's copy of its target (3 floats) and passing temporaries: about 8 GB per 2^26
+# pairs, 24 GB here. Why this many: on an H100 the fit of a paper-rig 512^2 grid took 90.4 s in chunks of 5,461 texels
+# (2^26 pairs), 80.1 s in 10,922, 68.2 s in 16,384 and 72.0 s in 21,845 (the device's used memory peaked at 24 and
+# 45 GB for the second and the last; docs/performance.md, 2026-11-26): a chunk's launches are too short to fill the
+# GPU below that. (Before the fit's sums moved into Warp, reconstruction.fit_sums, it stored (texels x LEDs x 3)
+# tensors for the albedo weights, the loss and each of 5 Jacobian rows, and held 2^25 pairs: 16,384 paper texels at
+# once ran out of an H100's 80 GB.)
+AUTO_CHUNK_PAIRS = 3 * 2 ** 26
 HEADS = (("normal", 2), ("theta", 1), ("alpha", 2), ("rho_d", 3), ("rho_s", 3))  # reference §5's 5 heads
 
 
@@ -786,14 +789,19 @@ def _diffuse_normal(prob: _Problem) -> torch.Tensor:
     return torch.where(ok[:, None], _unit(g), N)
 
 
-def _best_candidate(prob: _Problem, normal: torch.Tensor):
+def _candidate_pairs(c: FitConfig) -> tuple[list, list]:
+    """The roughness / tangent candidates (alpha_x, alpha_y, theta): the isotropic ones (every init_alphas), and the
+    anisotropic ones (each pair alpha_y < alpha_x at init_thetas angles; the BRDF has period pi in theta)."""
+    thetas = [math.pi * k / c.init_thetas for k in range(c.init_thetas)]
+    return ([(a, a, 0.0) for a in c.init_alphas],
+            [(ax, ay, th) for ax in c.init_alphas for ay in c.init_alphas if ay < ax for th in thetas])
+
+
+def _best_candidate(prob: _Problem, normal: torch.Tensor, pairs: list):
     """For one normal per texel, the best (loss (n,), geometry numbers (n, 5), rho_d, rho_s) over the
-    roughness / tangent candidates, each with its closed-form albedos."""
+    roughness / tangent candidates `pairs` (_candidate_pairs), each with its closed-form albedos."""
     c = prob.config
     n, dev = prob.n, prob.pos.device
-    thetas = [math.pi * k / c.init_thetas for k in range(c.init_thetas)]  # the BRDF has period pi in theta
-    pairs = [(a, a, 0.0) for a in c.init_alphas]
-    pairs += [(ax, ay, th) for ax in c.init_alphas for ay in c.init_alphas if ay < ax for th in thetas]
     best = None
     for ax, ay, th in pairs:
         g = _encode_geometry(normal, torch.full((n,), th, device=dev), torch.full((n,), ax, device=dev),
@@ -807,24 +815,40 @@ def _best_candidate(prob: _Problem, normal: torch.Tensor):
     return best
 
 
+def _keep_better(best: list, other: list, sel: torch.Tensor | None = None) -> torch.Tensor:
+    """Put `other` (_best_candidate's list, of the texels sel, None: all) into `best` where its loss is lower; returns
+    where it was."""
+    sel = torch.arange(best[0].shape[0], device=best[0].device) if sel is None else sel
+    better = other[0] < best[0][sel]
+    for x, y in zip(best, other):
+        x[sel] = torch.where(better.view(-1, *[1] * (x.ndim - 1)), y, x[sel])
+    return better
+
+
 def _initial(prob: _Problem):
-    """(geometry numbers (n, 5), rho_d, rho_s) of the best initial candidate per texel: the plane normal,
-    and where they point elsewhere (> 1 deg off), the specular peak's half vector (_peak_normal) and the
-    diffuse shading's normal (_diffuse_normal), each with every roughness / tangent candidate."""
+    """(geometry numbers (n, 5), rho_d, rho_s) of the best initial candidate per texel. The normal first: the plane
+    normal, and where they point elsewhere (> 1 deg off), the specular peak's half vector (_peak_normal) and the
+    diffuse shading's normal (_diffuse_normal), each with the isotropic roughness candidates; then the
+    anisotropic candidates at each texel's best normal (_candidate_pairs)."""
     # candidates are ranked on config.camera's lumitexels and photos alone (ours): the other view's photos, with
     # albedos of their own (_projected), inform the geometry that Levenberg-Marquardt refines, and ranking with
-    # them doubled the candidates' cost for no gain on the material suite (docs/accuracy.md, 2026-11-25)
+    # them doubled the candidates' cost for no gain on the material suite (docs/accuracy.md, 2026-11-25).
+    # The anisotropic candidates at the best normal only (ours, issue #12): they were 18 of the 22 candidates at each
+    # of up to three normals, 3/10 of the fit's time on the paper rig; which normal is best is decided by where the
+    # lobe points, which the isotropic candidates see as well (docs/performance.md, 2026-11-26)
     prob = replace(prob, photos=tuple(g for g in prob.photos if g.camera == prob.config.camera))
+    isotropic, anisotropic = _candidate_pairs(prob.config)
     with torch.no_grad():
         N = prob.frame[0].expand(prob.n, 3)
-        best = _best_candidate(prob, N)
+        normal = N.clone()
+        best = _best_candidate(prob, N, isotropic)
         for h in (_peak_normal(prob), _diffuse_normal(prob)):
             sel = torch.nonzero((h * N).sum(-1) < math.cos(math.radians(1.0))).flatten()
             if sel.numel():
-                other = _best_candidate(prob.part(sel), h[sel])
-                better = other[0] < best[0][sel]
-                for x, y in zip(best, other):
-                    x[sel] = torch.where(better.view(-1, *[1] * (x.ndim - 1)), y, x[sel])
+                better = _keep_better(best, _best_candidate(prob.part(sel), h[sel], isotropic), sel)
+                normal[sel] = torch.where(better[:, None], h[sel], normal[sel])
+        if anisotropic:
+            _keep_better(best, _best_candidate(prob, normal, anisotropic))
     return best[1], best[2], best[3]
 
 
@@ -1008,11 +1032,11 @@ def _difference_system(prob: _Problem, q: torch.Tensor, to_numbers=None) -> tupl
 
 
 def _system(prob: _Problem, q: torch.Tensor) -> tuple:
-    """(J J^T (n, 5, 5), J r (n, 5)): the Gauss-Newton system of _residuals at the numbers q, with the Jacobian
-    that FitConfig.jacobian asks for."""
+    """(J J^T (n, 5, 5), J r (n, 5), the loss r.r (n,)): the Gauss-Newton system of _residuals at the numbers q, with
+    the Jacobian that FitConfig.jacobian asks for."""
     if prob.config.jacobian == "analytic":
-        return _normal_equations(prob, q)[:2]
-    return _difference_system(prob, q)[:2]
+        return _normal_equations(prob, q)
+    return _difference_system(prob, q)
 
 
 def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -> torch.Tensor:
@@ -1021,30 +1045,24 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
     (_residuals, the closed-form albedos re-solved at every evaluation: variable projection) is analytic or by
     forward differences, 5 more evaluations of the residuals per iteration (FitConfig.jacobian). A step is
     kept where it lowers the texel's loss (then mu / 3), else refused (mu x 4; Marquardt's scaling by the
-    diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing; the Jacobian of a
-    texel whose step was refused is not taken again: its numbers did not move). log alpha is
-    clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
-    FitConfig.tolerance (relative) or whose mu exceeds 1e10 drop out. history[i] += the sum of the losses
-    after iteration i."""
+    diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing). A trial step is
+    evaluated with its Gauss-Newton system (_system: the loss comes with it), which a kept step then uses and a
+    refused one drops, keeping the texel's last: on a GPU one evaluation of loss and system together cost less
+    than a loss and, after most steps (most are kept), a system apart (docs/performance.md, 2026-11-26). log alpha
+    is clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
+    FitConfig.tolerance (relative) or whose mu exceeds 1e10 drop out. history[i] += the sum of the losses after
+    iteration i."""
     c = prob.config
     lo, hi = (math.log(a) for a in c.alpha_range)
     q = q.clone()
     q[:, 3:5] = q[:, 3:5].clamp(lo, hi)
     with torch.no_grad():
-        loss = _loss(prob, q)
+        AA, gg, loss = _system(prob, q)
         mu = torch.full_like(loss, c.lm_damping)
         active = torch.ones_like(loss, dtype=torch.bool)
-        # the Gauss-Newton system of each texel, kept while its numbers stay (a refused step moves nothing)
-        AA = torch.zeros(prob.n, GEOMETRY_SIZE, GEOMETRY_SIZE, dtype=q.dtype, device=q.device)
-        gg = torch.zeros(prob.n, GEOMETRY_SIZE, dtype=q.dtype, device=q.device)
-        fresh = torch.zeros_like(active)
         for i in range(c.steps):
             idx = torch.nonzero(active).flatten()
             if idx.numel():
-                stale = idx[~fresh[idx]]
-                if stale.numel():
-                    AA[stale], gg[stale] = _system(prob.part(stale), q[stale])
-                    fresh[stale] = True
                 part, qa = prob.part(idx), q[idx]
                 A, grad = AA[idx], gg[idx]
                 d = torch.diagonal(A, dim1=1, dim2=2)
@@ -1052,13 +1070,14 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
                 step = torch.linalg.solve(A + torch.diag_embed(damp), -grad[..., None])[..., 0]
                 qn = qa + step
                 qn[:, 3:5] = qn[:, 3:5].clamp(lo, hi)
-                ln = _loss(part, qn)
+                An, gn, ln = _system(part, qn)
                 ok = torch.isfinite(ln) & (ln < loss[idx])
                 gain = (loss[idx] - ln) / loss[idx].clamp_min(1e-30)
                 q[idx] = torch.where(ok[:, None], qn, qa)
                 loss[idx] = torch.where(ok, ln, loss[idx])
+                AA[idx] = torch.where(ok[:, None, None], An, A)
+                gg[idx] = torch.where(ok[:, None], gn, grad)
                 mu[idx] = torch.where(ok, mu[idx] / 3, mu[idx] * 4)
-                fresh[idx] &= ~ok
                 active[idx] = ~((ok & (gain < c.tolerance)) | (mu[idx] > 1e10))
             history[i] += float(loss.sum())
     return q
