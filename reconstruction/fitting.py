@@ -1056,9 +1056,8 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
     kept where it lowers the texel's loss (then mu / 3), else refused (mu x 4; Marquardt's scaling by the
     diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing). A trial step is
     evaluated with its Gauss-Newton system (_system: the loss comes with it), which a kept step then uses and a
-    refused one drops, keeping the texel's last: on a GPU one evaluation of loss and system together cost less
-    than a loss and, after most steps (most are kept), a system apart (docs/performance.md, 2026-11-26). log alpha
-    is clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
+    refused one drops, keeping the texel's last: a loss and then a kept step's system evaluated the forward model
+    and decoded the lumitexels twice, and most steps are kept. log alpha is clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
     FitConfig.tolerance (relative) or whose mu exceeds 1e10 drop out. history[i] += the sum of the losses after
     iteration i."""
     c = prob.config
@@ -1291,38 +1290,33 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     x = _to_tensor(q).double()
     lo, hi = (math.log(v) for v in c.alpha_range)
 
-    def data(x, jac: bool):
+    def data(x):
         """Per chunk of texels (only the 5 x 5 normal equations are kept, not the Jacobians: the paper rig's
         residuals are 3 x 12,288 + photos per texel): each texel's sum of squared residuals, their total, the
-        Gauss-Newton blocks J^T J and gradients J^T r (None without jac)."""
+        Gauss-Newton blocks J^T J and gradients J^T r."""
         rows, Hs, gs = [], [], []
         with torch.no_grad():
             for idx in _chunks(prob, c.batch):
-                part = prob.part(idx)
-                xi = x[idx].float()
-                if jac:
-                    H, g, loss = _tensor_system(part, xi)
-                    Hs.append(H.double())
-                    gs.append(g.double())
-                else:
-                    loss = _loss(part, _from_tensor(xi))
+                H, g, loss = _tensor_system(prob.part(idx), x[idx].float())
+                Hs.append(H.double())
+                gs.append(g.double())
                 rows.append(loss.double())
         rows = torch.cat(rows)
-        return rows, float(rows.sum()), torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None
+        return rows, float(rows.sum()), torch.cat(Hs), torch.cat(gs)
 
     def prior(x):
         a = x[:, prior_dims]
         return float((a * _laplacian(a, weights, (R, C))).sum())  # sum_{i~j} w_ij |a_i - a_j|^2
 
     if resume is None:
-        rows, total, JJ, Jr = data(x, True)
+        rows, total, JJ, Jr = data(x)
         sigma2 = float((rows / max(_residual_count(prob) - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
         F = total / sigma2 + prior(x)
         F0, mu, kept, cg, tried = F, c.lm_damping, 0, 0, 0
     else:  # the same numbers the loop held when they were saved; the system at x is recomputed (deterministic)
         x = torch.as_tensor(resume["x"], dtype=torch.float64, device=x.device)
         sigma2, F, F0, mu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "kept", "cg", "tried"))
-        rows, total, JJ, Jr = data(x, True) if tried < c.steps and not resume["done"] else (None,) * 4
+        rows, total, JJ, Jr = data(x) if tried < c.steps and not resume["done"] else (None,) * 4
     done = resume is not None and resume["done"]
 
     def state():
@@ -1339,16 +1333,18 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         step, it = _block_pcg(H_damped, weights, (R, C), -g, prior_dims, 10 * (R + C))
         cg += it
         xn = x + step
-        _, total_n, _, _ = data(xn, False)
-        Fn = total_n / sigma2 + prior(xn)
+        # the trial step is evaluated with its Gauss-Newton system, which a kept step needs next (the loss comes with
+        # it): a loss and then a kept step's system evaluate the forward model and decode the lumitexels twice, and
+        # nearly every step is kept (ours, issue #12)
+        data_n = data(xn)
+        Fn = data_n[1] / sigma2 + prior(xn)
         if not math.isfinite(Fn) or Fn >= F:
             mu *= 4
             done = mu > 1e10
         else:
             gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
+            rows, total, JJ, Jr = data_n
             done = gain < c.tolerance
-            if not done:
-                rows, total, JJ, Jr = data(x, True)
         if save is not None:
             save(state())
     out = _from_tensor(x.float())
