@@ -1057,9 +1057,9 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
     diagonal, plus a floor for the tangent angle of an isotropic texel, which moves nothing). A trial step is
     evaluated with its Gauss-Newton system (_system: the loss comes with it), which a kept step then uses and a
     refused one drops, keeping the texel's last: a loss and then a kept step's system evaluated the forward model
-    and decoded the lumitexels twice, and most steps are kept. log alpha is clamped to alpha_range after each step. Texels whose last kept step changed their loss by less than
-    FitConfig.tolerance (relative) or whose mu exceeds 1e10 drop out. history[i] += the sum of the losses after
-    iteration i."""
+    and decoded the lumitexels twice, and most steps are kept. log alpha is clamped to alpha_range after each
+    step. Texels whose last kept step changed their loss by less than FitConfig.tolerance (relative) or whose mu
+    exceeds 1e10 drop out. history[i] += the sum of the losses after iteration i."""
     c = prob.config
     lo, hi = (math.log(a) for a in c.alpha_range)
     q = q.clone()
