@@ -121,16 +121,16 @@ JACOBIANS = ("analytic", "forward")  # FitConfig.jacobian
 METHODS = ("direct", "neural")  # FITTING_METHODS below: one function each
 GEOMETRY_SIZE = 5  # [u, v, theta, a_x, a_y]
 # texel-LED pairs evaluated at once when FitConfig.batch is None (ours, memory and speed): every texel of a mini-rig
-# grid up to 540^2 in one range; 10,922 texels on the paper rig. A pair costs the grey bases and their 5 derivatives
-# of each view (2 x 12 floats), the chunk's copy of its target (3 floats) and passing temporaries: about 8 GB per 2^26
-# pairs. Why this many: on an H100 the fit of a paper-rig 512^2 grid took 90.4 s in chunks of 5,461 texels (2^26
-# pairs), 80.1 s in 10,922, 68.2 s in 16,384 and 72.0 s in 21,845, the device's used memory peaking at 23.8 GB for
-# 10,922 and 45.3 GB for 21,845; a whole 1024^2 reconstruction in chunks of 16,384 peaked at 42.5 GB, over issue
-# #12's 40 GB (docs/performance.md, 2026-11-26). Below that a chunk's launches are too short to fill the GPU.
-# (Before the fit's sums moved into Warp, reconstruction.fit_sums, it stored (texels x LEDs x 3) tensors for the
-# albedo weights, the loss and each of 5 Jacobian rows, and held 2^25 pairs: 16,384 paper texels at once ran out of
-# an H100's 80 GB.)
-AUTO_CHUNK_PAIRS = 2 ** 27
+# grid up to 660^2 in one range; 16,384 texels on the paper rig. A pair costs one view's grey bases and their 5
+# derivatives at a time (12 floats; _linearisation), the chunk's copy of its target (3 floats) and passing
+# temporaries: one Gauss-Newton system of 16,384 paper texels allocates 10.8 GiB (19.9 GiB while both views' bases
+# were held at once). Why this many: on an H100 the fit of a paper-rig 512^2 grid took 90.4 s in chunks of 5,461
+# texels, 80.1 s in 10,922, 68.2 s in 16,384 and 72.0 s in 21,845; below that a chunk's launches are too short to
+# fill the GPU. With both views' bases at once, a 1024^2 reconstruction in chunks of 16,384 used 42.5 GB of the
+# device, over issue #12's 40 GB (docs/performance.md, 2026-11-26). (Before the fit's sums moved into Warp,
+# reconstruction.fit_sums, it stored (texels x LEDs x 3) tensors for the albedo weights, the loss and each of 5
+# Jacobian rows, and held 2^25 pairs: 16,384 paper texels at once ran out of an H100's 80 GB.)
+AUTO_CHUNK_PAIRS = 3 * 2 ** 26
 HEADS = (("normal", 2), ("theta", 1), ("alpha", 2), ("rho_d", 3), ("rho_s", 3))  # reference §5's 5 heads
 
 
@@ -970,7 +970,7 @@ def _linearisation(prob: _Problem, q: torch.Tensor):
 
     # another camera's bases are projected and freed before config.camera's are computed: a view's bases and their
     # derivatives are 12 floats a texel-LED pair (9.7 GB for a chunk of 16,384 paper texels), and both views' at once
-    # were most of a chunk's memory (ours, issue #12)
+    # were most of a chunk's memory: a system of such a chunk allocated 19.9 GiB, now 10.8 GiB (ours, issue #12)
     for cam in dict.fromkeys(g.camera for g in photos if g.camera != c.camera):
         project(cam, _grey(prob, geom, cam, (d_frame, d_log_alpha)))
     val, dD0, dS0 = _grey(prob, geom, c.camera, (d_frame, d_log_alpha))
