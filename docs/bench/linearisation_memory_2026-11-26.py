@@ -43,3 +43,6 @@ for name, mod in (("0007355", fitting_old), ("now", fitting), ("0007355 again", 
 out["max_abs_diff_A_rel"] = float((res["now"]["A"] - res["0007355"]["A"]).abs().max() / res["0007355"]["A"].abs().max())
 out["max_abs_diff_loss"] = float((res["now"]["loss"] - res["0007355"]["loss"]).abs().max())
 print(json.dumps(out, indent=1))
+# the two must compute the same system (they run the same operations in another order): exit non-zero if not
+if out["max_abs_diff_A_rel"] > 1e-6 or out["max_abs_diff_loss"] > 1e-6 * float(res["0007355"]["loss"].abs().max()):
+    sys.exit("the two _linearisation variants computed different systems")
