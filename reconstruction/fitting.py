@@ -948,18 +948,49 @@ def _albedo_derivatives(sums: list, dsums: list, a: torch.Tensor, b: torch.Tenso
     return da.to(dtype), db.to(dtype)
 
 
-def _linearisation(prob: _Problem, q: torch.Tensor):
-    """What the analytic Jacobian of _residuals at q is made of: the bases' derivatives from one launch of
-    twin.optics.jvp.basis_jvp per camera, the closed-form albedos' derivatives (_albedo_derivatives), the chain
-    rule through the projections onto the photos' weights and the loss's transform. Costs about one evaluation
-    of the forward model per camera where the forward difference takes five (FitConfig.jacobian). Returns
-    config.camera's grey bases val (2, n, L) and their derivatives dD0, dS0 (n, 5, L), the shared albedos rd, rs
-    (n, 3) and their derivatives da, db (n, 5, 3), and each photo group's residuals (n, 3 K) and Jacobian rows
-    (n, 5, 3 K)."""
+def _number_bases(prob: _Problem, q: torch.Tensor):
+    """camera -> its grey bases val (2, n, L) and their derivatives dD0, dS0 (n, 5, L) along the direct method's
+    5 numbers [u, v, theta, log alpha_x, log alpha_y] at q (_grey with _frame_derivatives): _linearisation's
+    bases."""
+    geom, d_frame, d_log_alpha = _frame_derivatives(prob, q)
+    return lambda camera: _grey(prob, geom, camera, (d_frame, d_log_alpha))
+
+
+def _isotropic_bases(prob: _Problem, x: torch.Tensor):
+    """camera -> the grey bases and their derivatives along the joint prior's tensor coordinates x = [u, v, m, c,
+    s] (_to_tensor) at the isotropic lobe (c = s = 0; x's own c, s are not read), where the chain rule through the
+    tangent angle (_tensor_system) divides by d = 0. With c + i s = d e^(2 i theta), the lobe's derivative along
+    c is that of log alpha_x - log alpha_y at theta = 0, along s the same at theta = pi / 4, and along m that of
+    both log alphas; an isotropic lobe is the same at any theta, so the bases are those at theta = 0. Exact at c =
+    s = 0, for two launches of basis_jvp per camera (the second for the one direction s), where forward
+    differences took six evaluations of the residuals (ours, issue #12)."""
+    zero = torch.zeros_like(x[:, 0])
+    q = torch.stack([x[:, 0], x[:, 1], zero, x[:, 2], x[:, 2]], 1)
+    geom, d_frame, _ = _frame_derivatives(prob, q)
+    turned = _log_geometry(q + q.new_tensor([0.0, 0.0, math.pi / 4, 0.0, 0.0]), prob.frame)
+    d_frame = torch.cat([d_frame[:, :2], torch.zeros_like(d_frame[:, :2])], 1)  # u, v; m and c turn no frame row
+    d_log_alpha = q.new_tensor([[0.0, 0.0], [0.0, 0.0], [1.0, 1.0], [1.0, -1.0]]).expand(q.shape[0], 4, 2)
+    along_s = (q.new_zeros(q.shape[0], 1, 3, 3), q.new_tensor([[[1.0, -1.0]]]).expand(q.shape[0], 1, 2))
+
+    def bases(camera):
+        val, dD, dS = _grey(prob, geom, camera, (d_frame, d_log_alpha))
+        _, dD_s, dS_s = _grey(prob, turned, camera, along_s)
+        return val, torch.cat([dD, dD_s], 1), torch.cat([dS, dS_s], 1)
+
+    return bases
+
+
+def _linearisation(prob: _Problem, bases):
+    """What the analytic Jacobian of _residuals is made of, for `bases` (_number_bases at the numbers q, or
+    _isotropic_bases): the bases' derivatives from basis_jvp per camera, the closed-form albedos' derivatives
+    (_albedo_derivatives), the chain rule through the projections onto the photos' weights and the loss's
+    transform. Costs about one evaluation of the forward model per camera where the forward difference takes five
+    (FitConfig.jacobian). Returns config.camera's grey bases val (2, n, L) and their derivatives dD0, dS0 (n, 5,
+    L), the shared albedos rd, rs (n, 3) and their derivatives da, db (n, 5, 3), and each photo group's residuals
+    (n, 3 K) and Jacobian rows (n, 5, 3 K), along the 5 directions of `bases`."""
     from twin.optics.torch_ops import tf32_products
 
     c = prob.config
-    geom, d_frame, d_log_alpha = _frame_derivatives(prob, q)
     photos = prob.photos if prob.has_lines else ()
     pb, dpb = [None] * len(photos), [None] * len(photos)
 
@@ -975,8 +1006,8 @@ def _linearisation(prob: _Problem, q: torch.Tensor):
     # derivatives are 12 floats a texel-LED pair (9.7 GB for a chunk of 16,384 paper texels), and both views' at once
     # were most of a chunk's memory: a system of such a chunk allocated 19.9 GiB, now 10.8 GiB (ours, issue #12)
     for cam in dict.fromkeys(g.camera for g in photos if g.camera != c.camera):
-        project(cam, _grey(prob, geom, cam, (d_frame, d_log_alpha)))
-    val, dD0, dS0 = _grey(prob, geom, c.camera, (d_frame, d_log_alpha))
+        project(cam, bases(cam))
+    val, dD0, dS0 = bases(c.camera)
     project(c.camera, (val, dD0, dS0))
     sums, dsums = _albedo_sums(prob, val, pb, (dD0, dS0, dpb))
     rd, rs, own = _projected(prob, val, pb, sums)
@@ -1000,7 +1031,7 @@ def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
     """(n, 5, residuals) Jacobian of _residuals at q, exact (_linearisation), every row stored: what
     `hemicube bench fit-jacobian` and the tests check against central differences; the fit itself takes the
     Gauss-Newton system without the rows (_normal_equations)."""
-    val, dD0, dS0, rd, rs, da, db, _, photo_J = _linearisation(prob, q)
+    val, dD0, dS0, rd, rs, da, db, _, photo_J = _linearisation(prob, _number_bases(prob, q))
     c, ratio = prob.config, prob.ratio
     D, S = _split(prob, val)
     m_hat = rd[:, None] * D + rs[:, None] * S
@@ -1012,11 +1043,12 @@ def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
     return torch.cat([dm.reshape(prob.n, GEOMETRY_SIZE, -1), *photo_J], dim=2)
 
 
-def _normal_equations(prob: _Problem, q: torch.Tensor) -> tuple:
+def _normal_equations(prob: _Problem, q: torch.Tensor, bases=None) -> tuple:
     """(J J^T (n, 5, 5), J r (n, 5), the loss r.r (n,)) of the residuals r = _residuals at q and their analytic
-    Jacobian J (_linearisation). The lumitexels' share, 3 L rows of 5 a texel, is summed in one Warp launch that
-    never stores them (reconstruction.fit_sums.lumitexel_terms); the photos' few rows in torch."""
-    val, dD0, dS0, rd, rs, da, db, photo_r, photo_J = _linearisation(prob, q)
+    Jacobian J (_linearisation), along the 5 numbers or the directions of `bases` (_isotropic_bases, q then
+    unused). The lumitexels' share, 3 L rows of 5 a texel, is summed in one Warp launch that never stores them
+    (reconstruction.fit_sums.lumitexel_terms); the photos' few rows in torch."""
+    val, dD0, dS0, rd, rs, da, db, photo_r, photo_J = _linearisation(prob, bases or _number_bases(prob, q))
     loss, A, g = fit_sums.lumitexel_terms(val, prob.target, prob.ratio, rd, rs, prob.config.loss, prob.scale_m,
                                           dD0, dS0, da, db)
     for r, J in zip(photo_r, photo_J):
@@ -1179,8 +1211,8 @@ def _tensor_system(prob: _Problem, x: torch.Tensor) -> tuple:
     """(J J^T, J r, r.r) of the residuals r = _residuals(_from_tensor(x)) in the tensor coordinates x, J their
     Jacobian there. The analytic one (FitConfig.jacobian) by the chain rule through _from_tensor (J = dq/dx^T J_q,
     so J J^T = dq/dx^T (J_q J_q^T) dq/dx), whose angle is undefined where the lobe is isotropic (d = 0): there, for
-    d < 1e-4, by forward differences in x, which stay smooth (its error elsewhere: float32's epsilon / d relative,
-    from the tangent angle's 1 / d)."""
+    d < 1e-4, the system of the isotropic lobe at [u, v, m, 0, 0] (_isotropic_bases; its error at such d is O(d),
+    the chain rule's float32's epsilon / d relative, from the tangent angle's 1 / d); the loss is x's own."""
     if prob.config.jacobian != "analytic":
         return _difference_system(prob, x, _from_tensor)
     q = _from_tensor(x)
@@ -1196,7 +1228,8 @@ def _tensor_system(prob: _Problem, x: torch.Tensor) -> tuple:
     g = (dq.transpose(1, 2) @ g[..., None])[..., 0]
     near = torch.nonzero(d < 1e-4).flatten()
     if near.numel():
-        A[near], g[near], _ = _difference_system(prob.part(near), x[near], _from_tensor)
+        part = prob.part(near)
+        A[near], g[near], _ = _normal_equations(part, None, _isotropic_bases(part, x[near]))
     return A, g, loss
 
 
