@@ -1320,7 +1320,8 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     fit errs by 15-60% and noise turns an isotropic lobe anisotropic, while the noise-free oracle fit is exact
     (docs/accuracy.md). The photos of a region are pooled, not its per-texel estimates, which noise biases.
     `resume`: the state a killed run saved (_fit_direct's checkpoint), from which the loop goes on as it would have;
-    `save(state)` is called after every step. Returns (q, info)."""
+    `save(state)` is called after every step. Returns (q, info); info's joint_trials lists each trial step's [mu, its
+    relative change of F] (a refused one's >= 0)."""
     c = prob.config
     R, C = (int(v) for v in grid_shape)
     weights = _colour_weights(rho_d, (R, C), 1.0 / c.alpha_prior ** 2)
@@ -1328,19 +1329,23 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     x = _to_tensor(q).double()
     lo, hi = (math.log(v) for v in c.alpha_range)
 
-    def data(x):
+    def data(x, jac: bool = True):
         """Per chunk of texels (only the 5 x 5 normal equations are kept, not the Jacobians: the paper rig's
         residuals are 3 x 12,288 + photos per texel): each texel's sum of squared residuals, their total, the
-        Gauss-Newton blocks J^T J and gradients J^T r."""
+        Gauss-Newton blocks J^T J and gradients J^T r (None without jac)."""
         rows, Hs, gs = [], [], []
         with torch.no_grad():
             for idx in _chunks(prob, c.batch):
-                H, g, loss = _tensor_system(prob.part(idx), x[idx].float())
-                Hs.append(H.double())
-                gs.append(g.double())
+                part, xi = prob.part(idx), x[idx].float()
+                if jac:
+                    H, g, loss = _tensor_system(part, xi)
+                    Hs.append(H.double())
+                    gs.append(g.double())
+                else:
+                    loss = _loss(part, _from_tensor(xi))
                 rows.append(loss.double())
         rows = torch.cat(rows)
-        return rows, float(rows.sum()), torch.cat(Hs), torch.cat(gs)
+        return rows, float(rows.sum()), torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None
 
     def prior(x):
         a = x[:, prior_dims]
@@ -1350,16 +1355,17 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         rows, total, JJ, Jr = data(x)
         sigma2 = float((rows / max(_residual_count(prob) - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
         F = total / sigma2 + prior(x)
-        F0, mu, kept, cg, tried = F, c.lm_damping, 0, 0, 0
+        F0, mu, kept, cg, tried, trials = F, c.lm_damping, 0, 0, 0, []
     else:  # the same numbers the loop held when they were saved; the system at x is recomputed (deterministic)
         x = torch.as_tensor(resume["x"], dtype=torch.float64, device=x.device)
         sigma2, F, F0, mu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "kept", "cg", "tried"))
+        trials = list(resume.get("trials", []))
         rows, total, JJ, Jr = data(x) if tried < c.steps and not resume["done"] else (None,) * 4
     done = resume is not None and resume["done"]
 
     def state():
         return {"x": x.cpu().numpy(), "sigma2": sigma2, "F": F, "F0": F0, "mu": mu, "kept": kept, "cg": cg,
-                "tried": tried, "done": done}
+                "tried": tried, "done": done, "trials": trials}
 
     while not done and tried < c.steps:
         tried += 1
@@ -1371,24 +1377,26 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         step, it = _block_pcg(H_damped, weights, (R, C), -g, prior_dims, 10 * (R + C))
         cg += it
         xn = x + step
-        # the trial step is evaluated with its Gauss-Newton system, which a kept step needs next (the loss comes with
-        # it): a loss and then a kept step's system evaluate the forward model and decode the lumitexels twice, and
-        # nearly every step is kept (ours, issue #12)
-        data_n = data(xn)
-        Fn = data_n[1] / sigma2 + prior(xn)
-        if not math.isfinite(Fn) or Fn >= F:
+        # a trial step is evaluated by its loss alone, and a kept one's Gauss-Newton system computed after: at 1024^2
+        # on the paper rig a pass of losses costs ~4 s and one of systems ~9 s, and about half the trials are refused
+        # (docs/performance.md, issue #12)
+        Fn = data(xn, False)[1] / sigma2 + prior(xn)
+        refused = not math.isfinite(Fn) or Fn >= F
+        trials.append([mu, Fn / F - 1 if math.isfinite(Fn) else None])
+        if refused:
             mu *= 4
             done = mu > 1e10
         else:
             gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
-            rows, total, JJ, Jr = data_n
             done = gain < c.tolerance
+            if not done:
+                rows, total, JJ, Jr = data(x)
         if save is not None:
             save(state())
     out = _from_tensor(x.float())
     out[:, 3:5] = out[:, 3:5].clamp(lo, hi)
     return out, {"joint_steps": kept, "joint_cg_iterations": cg, "joint_objective": [F0, F],
-                 "joint_sigma2": sigma2}
+                 "joint_sigma2": sigma2, "joint_trials": trials}
 
 
 def _joint_albedos(prob: _Problem, sums: list, rho_d: torch.Tensor, rho_s: torch.Tensor, grid_shape,

@@ -134,3 +134,30 @@ def test_raw_compare_finds_no_difference_in_a_capture_against_itself(validate_di
     rep = raw_compare.report(cap, tmp_path / "diff.npz")
     assert rep["frames"] == rep["frames_compared"] == rep["identical_frames"] > 500
     assert rep["differing_pixels"] == 0 and rep["missing_frames"] == []
+
+
+def test_photos_unsynced_and_a_torn_one_retaken(tmp_path, monkeypatch):
+    """A photo's files are renamed into place without an fsync (twin.atomic's durable=False: ~20 GB a paper-rig
+    capture), the manifest that lists them with one; a photo file a power loss left short fails verify() and is not
+    done (photo_done), so a resumed capture takes it again."""
+    import twin.atomic
+
+    synced = []
+    real = os.fsync
+
+    def fsync(fd):
+        synced.append(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")))
+        real(fd)
+
+    monkeypatch.setattr(twin.atomic.os, "fsync", fsync)
+    header = {"format": "hemicube-capture", "version": 1, "rig": "mini", "rig_digest": "x"}
+    photo = Photo(0, "primary", 0, "p", "sample")
+    with CaptureSession.create(tmp_path / "c", header) as s:
+        s.write_photo(photo, [np.ones((4, 4), np.uint16)], np.ones((4, 4, 3), np.float32), {"exposures_s": [1e-3]})
+    assert synced and all(name.startswith(".manifest.json.") for name in synced), synced
+    s = CaptureSession.open(tmp_path / "c")
+    assert s.photo_done(photo) and s.verify() == []
+    exr = next((tmp_path / "c").glob("*.exr"))
+    exr.write_bytes(exr.read_bytes()[:100])  # what a power loss before the write-back may leave
+    s = CaptureSession.open(tmp_path / "c")
+    assert not s.photo_done(photo) and s.verify() == [exr.name]

@@ -1,5 +1,8 @@
 """Atomic file writes: write a temp file in the target's folder, fsync, rename over the target.
-A reader (or a killed writer) sees either the old file or the complete new one, never half of it."""
+A reader (or a killed writer) sees either the old file or the complete new one, never half of it. `durable=False`
+skips the fsync: the rename is still atomic for readers and killed writers, but after a power loss the file may
+hold less than was written, so only files whose checksum is verified before use may be written so (a capture's
+photos: CaptureSession.photo_done re-takes a photo whose files fail)."""
 from __future__ import annotations
 
 import hashlib
@@ -18,9 +21,10 @@ def _file_mode() -> int:
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str = ""):
+def atomic_path(path: str | os.PathLike, suffix: str = "", durable: bool = True):
     """Yield a temporary path beside `path`; on success rename it to `path`, on error delete it.
-    `suffix` keeps an extension some writers insist on (np.savez appends .npz otherwise)."""
+    `suffix` keeps an extension some writers insist on (np.savez appends .npz otherwise); `durable`: fsync before
+    the rename (module docstring)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
@@ -28,8 +32,9 @@ def atomic_path(path: str | os.PathLike, suffix: str = ""):
     os.chmod(tmp, _file_mode())
     try:
         yield Path(tmp)
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
+        if durable:
+            with open(tmp, "rb") as f:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -46,8 +51,8 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
-    with atomic_path(path) as tmp:
+def write_bytes_atomic(path: str | os.PathLike, data: bytes, durable: bool = True) -> Path:
+    with atomic_path(path, durable=durable) as tmp:
         tmp.write_bytes(data)
     return Path(path)
 

@@ -161,18 +161,19 @@ def _check_attributes(path: Path, attributes: Mapping | None) -> dict:
 
 
 def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], *, half: bool = False,
-              compression: str = "zip", attributes: Mapping | None = None) -> Path:
+              compression: str = "zip", attributes: Mapping | None = None, durable: bool = True) -> Path:
     """Write named (H, W) channels to a single-part scanline EXR, atomically. Returns the path.
 
     half=False stores FLOAT (float32), half=True stores HALF (float16). NaN/Inf are written as given.
-    `attributes`: extra header entries (str, int, float, list of floats)."""
+    `attributes`: extra header entries (str, int, float, list of floats). `durable`: fsync before the rename
+    (twin.atomic)."""
     path = Path(path)
     chans = _prepare_channels(path, channels, half)
     attrs = _check_attributes(path, attributes)
     OpenEXR = _openexr()
     header = {"compression": _compression(compression), "type": OpenEXR.scanlineimage, **attrs}
     try:
-        with atomic_path(path) as tmp:
+        with atomic_path(path, durable=durable) as tmp:
             with OpenEXR.File(header, chans) as f:
                 f.write(str(tmp))
     except ExrError:
