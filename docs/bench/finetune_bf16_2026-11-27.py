@@ -16,22 +16,12 @@ import time
 import numpy as np
 import torch
 
-import twin
+from bench_setup import finetune_texels
 from reconstruction import finetune as F
-from reconstruction.bench import _texels
-from reconstruction.latents import decode
-from reconstruction.pipeline import load_network
 
 n = int(sys.argv[1])
 dev = "cuda" if torch.cuda.is_available() else "cpu"
-torch.manual_seed(0)
-rig = twin.load_rig("paper")
-model = load_network("pretrained", rig, dev)
-learned, lines, pos, W, _ = _texels(rig, model, n, 0, dev, exact=False)
-rng = np.random.default_rng(1)
-lines = (lines * (1 + 0.01 * rng.standard_normal(lines.shape))).astype(np.float32)
-z = decode(model, learned, device=dev)
-hold = (0,)
+rig, model, lines, W, z, hold = finetune_texels("paper", n, dev)
 keep = [i for i in range(lines.shape[1]) if i not in hold]
 original = F._adam_run
 

@@ -9,21 +9,12 @@ later steps cost less. Reports texel-steps (the decoder evaluations, the compute
 out. Run on the mini rig on the CPU and on the paper rig on an H100 (`paper 65536 cuda`); neither saves steps
 (docs/performance.md).
 """
-import sys, time, json, numpy as np, torch, twin
-from reconstruction.bench import _texels
-from reconstruction.pipeline import load_network
-from reconstruction.latents import decode
+import sys, time, json, numpy as np, torch
+from bench_setup import finetune_texels
 from reconstruction import finetune as F
 
 rig_name, n = sys.argv[1], int(sys.argv[2]); dev = sys.argv[3] if len(sys.argv) > 3 else "cpu"
-torch.manual_seed(0)
-rig = twin.load_rig(rig_name)
-model = load_network("pretrained", rig, dev)
-learned, lines, pos, W, _ = _texels(rig, model, n, 0, dev, exact=False)
-rng = np.random.default_rng(1)
-lines = (lines * (1 + 0.01 * rng.standard_normal(lines.shape))).astype(np.float32)  # ~1% photo noise (extracted)
-z = decode(model, learned, device=dev)
-hold = (0,)
+rig, model, lines, W, z, hold = finetune_texels(rig_name, n, dev)
 cfg = F.FinetuneConfig(holdout=hold, device=dev, batch=16384)
 
 

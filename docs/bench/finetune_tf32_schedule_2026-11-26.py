@@ -15,22 +15,13 @@ Reported per run: seconds, texel-steps per pass, the median per-texel pass-3 obj
 float32 and its difference from float32's (issue #12's rule: within 1%). Runs on the CPU too (TF32 is then a no-op),
 e.g. with n = 64, to check the script.
 """
-import sys, time, json, numpy as np, torch, twin
-from reconstruction.bench import _texels
-from reconstruction.pipeline import load_network
-from reconstruction.latents import decode
+import sys, time, json, numpy as np, torch
+from bench_setup import finetune_texels
 from reconstruction import finetune as F
 
 n = int(sys.argv[1])
 dev = "cuda" if torch.cuda.is_available() else "cpu"
-torch.manual_seed(0)
-rig = twin.load_rig("paper")
-model = load_network("pretrained", rig, dev)
-learned, lines, pos, W, _ = _texels(rig, model, n, 0, dev, exact=False)
-rng = np.random.default_rng(1)
-lines = (lines * (1 + 0.01 * rng.standard_normal(lines.shape))).astype(np.float32)
-z = decode(model, learned, device=dev)
-hold = (0,)
+rig, model, lines, W, z, hold = finetune_texels("paper", n, dev)
 original = F._adam_run
 
 

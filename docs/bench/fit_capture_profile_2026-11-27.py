@@ -10,32 +10,16 @@ isotropic. A record of how the numbers were measured, not part of the pipeline.
 import json
 import sys
 import time
-from collections import defaultdict
 
 import torch
 
 import reconstruction.fitting as F
 import reconstruction.pipeline as P
+from bench_setup import timers
 from hemicube.cli import main
 
 out_path, args = sys.argv[1], sys.argv[sys.argv.index("--") + 1:]
-stats = defaultdict(lambda: [0, 0.0, 0])
-sync = torch.cuda.synchronize if torch.cuda.is_available() else (lambda: None)
-
-
-def timed(name, fn, count=None):
-    def wrapper(*a, **k):
-        sync()
-        t0 = time.perf_counter()
-        r = fn(*a, **k)
-        sync()
-        s = stats[name]
-        s[0] += 1
-        s[1] += time.perf_counter() - t0
-        if count is not None:
-            s[2] += count(*a)
-        return r
-    return wrapper
+stats, timed = timers()
 
 
 def texels(prob, *rest):

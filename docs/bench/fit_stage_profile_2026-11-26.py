@@ -11,12 +11,12 @@ lumitexel source with a call counter. A record of how the numbers were measured,
 import json
 import sys
 import time
-from collections import defaultdict
 
 import torch
 
 import twin
 import reconstruction.fitting as F
+from bench_setup import timers
 from reconstruction.bench import _texels
 from reconstruction.finetune import FinetuneConfig, decoded_lumitexels, finetune
 from reconstruction.latents import decode
@@ -42,22 +42,7 @@ rec["finetune_seconds"] = ft.seconds
 rec["finetune_iterations"] = {k: sum(v) for k, v in ft.iterations.items()}
 
 src = decoded_lumitexels(model, ft.latent, max_bytes=0)  # always a source, as at 1024^2
-stats = defaultdict(lambda: [0, 0.0, 0])
-
-
-def timed(name, fn, count=None):
-    def wrapper(*a, **k):
-        sync()
-        t0 = time.perf_counter()
-        r = fn(*a, **k)
-        sync()
-        s = stats[name]
-        s[0] += 1
-        s[1] += time.perf_counter() - t0
-        if count is not None:
-            s[2] += count(*a)
-        return r
-    return wrapper
+stats, timed = timers()
 
 
 source = timed("decode (source)", src, count=lambda idx: idx.numel())
