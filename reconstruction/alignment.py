@@ -218,10 +218,11 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(x * 255), 0, 255).astype(np.uint8)
 
 
-def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Sample (H, W, C) at float pixel coordinates (x = column, y = row), any shape; NaN outside
-    [0, W-1] x [0, H-1] or where x, y are NaN."""
-    H, W = img.shape[:2]
+def bilinear_taps(shape, x: np.ndarray, y: np.ndarray) -> tuple:
+    """What bilinear samples at float pixel coordinates (x = column, y = row, any shape) of an (H, W, ...) image:
+    the four taps' flat pixel indices, the weights' fractions and where the point lies inside [0, W-1] x [0, H-1]
+    (False for NaN). Computed once for many images sampled at the same points (a view's photos, extraction)."""
+    H, W = shape[:2]
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
     inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)  # False for NaN
@@ -230,10 +231,25 @@ def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     y0 = np.minimum(np.floor(ys).astype(np.int64), max(H - 2, 0))
     fx, fy = (xs - x0)[..., None], (ys - y0)[..., None]
     x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-    out = ((img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy) + (img[y1, x0] * (1 - fx) + img[y1, x1] * fx) * fy)
+    return (y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1), fx, fy, inside, (H, W)
+
+
+def bilinear_at(img: np.ndarray, taps: tuple) -> np.ndarray:
+    """bilinear of img (H, W, C) at the points of `taps` (bilinear_taps of its shape)."""
+    (i00, i01, i10, i11), fx, fy, inside, shape = taps
+    if img.shape[:2] != shape:
+        raise ValueError(f"taps for an image of {shape}, got one of {img.shape[:2]}")
+    f = img.reshape(shape[0] * shape[1], *img.shape[2:])
+    out = ((f[i00] * (1 - fx) + f[i01] * fx) * (1 - fy) + (f[i10] * (1 - fx) + f[i11] * fx) * fy)
     out = out.astype(np.float64)
     out[~inside] = np.nan
     return out
+
+
+def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Sample (H, W, C) at float pixel coordinates (x = column, y = row), any shape; NaN outside
+    [0, W-1] x [0, H-1] or where x, y are NaN."""
+    return bilinear_at(img, bilinear_taps(img.shape, x, y))
 
 
 def _undistort_px(cam, uv: np.ndarray) -> np.ndarray:

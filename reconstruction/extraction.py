@@ -245,21 +245,30 @@ def _gaussian(img: np.ndarray, k: int) -> np.ndarray:
 FOOTPRINTS = {"point": (lambda steps: 0, None), "cell": (_cell_width, _box), "gaussian": (_gaussian_width, _gaussian)}
 
 
-def _sample(img: np.ndarray, uv: np.ndarray, footprint: str = "point", ksize: int = 0) -> np.ndarray:
-    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at uv (N, 2), NaN outside the image, after
-    the footprint's filter of width ksize (none when 0) (exact weights: cv2.remap would quantise the sub-pixel
-    position to 1/32 px)."""
-    from .alignment import bilinear
+def _taps(shape, uv: np.ndarray) -> tuple:
+    """The bilinear taps (reconstruction.alignment.bilinear_taps) of the points uv (N, 2) in an image of `shape`:
+    computed once per view, as every photo of a view is sampled at the same points (ours, issue #12: at 1024^2
+    texels the taps were 0.4 of a photo's sampling)."""
+    from .alignment import bilinear_taps
+
+    return bilinear_taps(shape, uv[:, 0], uv[:, 1])
+
+
+def _sample(img: np.ndarray, taps: tuple, footprint: str = "point", ksize: int = 0) -> np.ndarray:
+    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at the points of `taps` (_taps), NaN outside the
+    image, after the footprint's filter of width ksize (none when 0) (exact weights: cv2.remap would quantise the
+    sub-pixel position to 1/32 px)."""
+    from .alignment import bilinear_at
 
     if ksize:
         img = FOOTPRINTS[footprint][1](img, ksize)
-    return bilinear(img, uv[:, 0], uv[:, 1]).astype(np.float32)
+    return bilinear_at(img, taps).astype(np.float32)
 
 
 def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
     """Step 4: each texel's secondary pixel, the alignment map (H0, W0, 2) sampled bilinearly at its primary
     pixel (NaN where the map is unknown)."""
-    return _sample(alignment.map, uv_primary)
+    return _sample(alignment.map, _taps(alignment.map.shape, uv_primary))
 
 
 def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "point",
@@ -294,7 +303,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
     shown = session.shown_patterns(0)
     learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]
 
-    views = ((uv0, k0), (uv1, k1))
+    views = [(_taps((cam.height, cam.width), uv), k) for cam, uv, k in zip(cams, (uv0, uv1), (k0, k1))]
 
     def sampled(job):
         k, c = job

@@ -188,7 +188,7 @@ def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
     cell's own value exactly, and with iid pixel noise sigma its error has the standard deviation of the weights'
     norm, sigma (6.5 / 49) (two overlapping 7 px boxes a side) against sigma / 2 at the centre alone ("point");
     the reference's Gaussian (9 px) takes the neighbours' values in."""
-    from reconstruction.extraction import FOOTPRINTS, _pixel_steps, _sample
+    from reconstruction.extraction import FOOTPRINTS, _pixel_steps, _sample, _taps
 
     R, d, sigma = 16, 8, 0.1
     rng = np.random.default_rng(0)
@@ -200,7 +200,7 @@ def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
     inner = ((ii > 0) & (ii < R - 1) & (jj > 0) & (jj < R - 1)).ravel()  # away from the image's border
 
     def read(footprint, image):
-        return _sample(image, uv, footprint, FOOTPRINTS[footprint][0](steps))[:, 0] - cells.ravel()
+        return _sample(image, _taps(image.shape, uv), footprint, FOOTPRINTS[footprint][0](steps))[:, 0] - cells.ravel()
 
     assert FOOTPRINTS["cell"][0](steps) == 7 and FOOTPRINTS["gaussian"][0](steps) == 9
     assert np.abs(read("cell", img)).max() < 1e-6
@@ -225,3 +225,27 @@ def test_footprint_choices_agree():
     assert set(action.choices) == set(FOOTPRINTS) and ReconstructConfig().footprint in FOOTPRINTS
     with pytest.raises(ValueError, match="footprint must be one of"):
         ReconstructConfig(footprint="box")
+
+
+def test_taps_once_sample_as_bilinear_does():
+    """A view's bilinear taps, computed once (extraction samples every photo of a view at the same points), then
+    applied to several images: bilinear interpolation reproduces an affine image exactly (closed form, float64 to
+    1e-12), on the last row and column too; NaN outside the image and at NaN points; the same bits as bilinear of
+    each image; taps of another image size are refused."""
+    from reconstruction.alignment import bilinear, bilinear_at, bilinear_taps
+
+    rng = np.random.default_rng(4)
+    x = np.r_[rng.uniform(0, 39, 500), 39.0, 0.0, -0.5, 40.5, np.nan]
+    y = np.r_[rng.uniform(0, 29, 500), 29.0, 29.0, 3.0, 3.0, 2.0]
+    taps = bilinear_taps((30, 40), x, y)
+    rows, cols = np.mgrid[0:30, 0:40]
+    for a, b, c in ((0.5, 0.01, -0.02), (2.0, -0.03, 0.07)):
+        img = np.stack([a + b * cols + c * rows, a - c * cols + b * rows], axis=2)
+        got = bilinear_at(img, taps)
+        inside = np.arange(len(x)) < len(x) - 3
+        np.testing.assert_allclose(got[inside], np.stack([a + b * x + c * y, a - c * x + b * y], 1)[inside],
+                                   rtol=0, atol=1e-12)
+        assert np.isnan(got[~inside]).all()
+        assert np.array_equal(got, bilinear(img, x, y), equal_nan=True)
+    with pytest.raises(ValueError, match="taps for an image"):
+        bilinear_at(np.zeros((31, 40, 3)), taps)
