@@ -1043,12 +1043,17 @@ def _analytic_jacobian(prob: _Problem, q: torch.Tensor) -> torch.Tensor:
     return torch.cat([dm.reshape(prob.n, GEOMETRY_SIZE, -1), *photo_J], dim=2)
 
 
-def _normal_equations(prob: _Problem, q: torch.Tensor, bases=None) -> tuple:
+def _normal_equations(prob: _Problem, q: torch.Tensor) -> tuple:
     """(J J^T (n, 5, 5), J r (n, 5), the loss r.r (n,)) of the residuals r = _residuals at q and their analytic
-    Jacobian J (_linearisation), along the 5 numbers or the directions of `bases` (_isotropic_bases, q then
-    unused). The lumitexels' share, 3 L rows of 5 a texel, is summed in one Warp launch that never stores them
-    (reconstruction.fit_sums.lumitexel_terms); the photos' few rows in torch."""
-    val, dD0, dS0, rd, rs, da, db, photo_r, photo_J = _linearisation(prob, bases or _number_bases(prob, q))
+    Jacobian J along the 5 numbers (_bases_system of _number_bases)."""
+    return _bases_system(prob, _number_bases(prob, q))
+
+
+def _bases_system(prob: _Problem, bases) -> tuple:
+    """(J J^T (n, 5, 5), J r (n, 5), the loss r.r (n,)) of the residuals and their analytic Jacobian J along the 5
+    directions of `bases` (_linearisation). The lumitexels' share, 3 L rows of 5 a texel, is summed in one Warp
+    launch that never stores them (reconstruction.fit_sums.lumitexel_terms); the photos' few rows in torch."""
+    val, dD0, dS0, rd, rs, da, db, photo_r, photo_J = _linearisation(prob, bases)
     loss, A, g = fit_sums.lumitexel_terms(val, prob.target, prob.ratio, rd, rs, prob.config.loss, prob.scale_m,
                                           dD0, dS0, da, db)
     for r, J in zip(photo_r, photo_J):
@@ -1229,7 +1234,7 @@ def _tensor_system(prob: _Problem, x: torch.Tensor) -> tuple:
     near = torch.nonzero(d < 1e-4).flatten()
     if near.numel():
         part = prob.part(near)
-        A[near], g[near], _ = _normal_equations(part, None, _isotropic_bases(part, x[near]))
+        A[near], g[near], _ = _bases_system(part, _isotropic_bases(part, x[near]))
     return A, g, loss
 
 

@@ -177,12 +177,13 @@ def test_normal_equations_are_those_of_the_stored_jacobian(mini, upper, loss, de
     assert torch.allclose(F._loss(prob, q), loss_q, rtol=1e-12, atol=0)
 
 
-def test_tensor_system_in_the_joint_prior_s_coordinates(mini, upper):
+@pytest.mark.parametrize("device", DEVICES)
+def test_tensor_system_in_the_joint_prior_s_coordinates(mini, upper, device):
     """The joint prior's coordinates [u, v, m, d cos 2 theta, d sin 2 theta] (_to_tensor): the chain rule
     through _from_tensor, and where a lobe is isotropic (d = 0, where theta is undefined) the isotropic lobe's own
     derivatives (_isotropic_bases), both against central differences in x (the residuals are smooth in x at d = 0:
     a lobe's anisotropy enters through d^2 and d (cos 2 theta, sin 2 theta) only)."""
-    prob, q = _problem64(mini, upper[1], "log1p", seed=2, P=12)
+    prob, q = _problem64(mini, upper[1], "log1p", seed=2, P=12, device=device)
     q[:3, 4] = q[:3, 3]  # three isotropic texels
     x = F._to_tensor(q)
     assert not x[:3, 3:].any()
