@@ -7,7 +7,8 @@ float32, the latents and Adam in float32), against TF32 (the pipeline's default)
 
 The texels and noise are those of docs/bench/finetune_tf32_schedule_2026-11-26.py (`hemicube bench reconstruct`'s
 synthetic texels, seed 0, 1% multiplicative noise on the lines, line 0 held out); each run's median per-texel
-pass-3 objective is evaluated in float32 on the kept lines. Runs on the CPU too (n = 64) to check the script.
+pass-3 objective is evaluated in float32 on the kept lines; exits 1 when float32's two runs differ. Runs on the CPU
+too (n = 64) to check the script.
 """
 import json
 import sys
@@ -59,3 +60,5 @@ for mode, r in res.items():
 res.update(rig="paper", texels=n, device=torch.cuda.get_device_name(0) if dev == "cuda" else "cpu",
            torch=torch.__version__)
 print(json.dumps(res, indent=1))
+# the baseline computes the same thing each time: float32 run twice gives the same objective (exit 1 otherwise)
+sys.exit(0 if res["float32_again"]["median_objective_rel_diff"] == 0.0 else 1)
