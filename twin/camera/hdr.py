@@ -65,7 +65,7 @@ from twin.camera.bayer import cfa_table, demosaic
 from twin.rig.camera import SensorParams
 from twin.camera.sensor import dn_max, effective_gain, saturation_electrons
 
-wp.set_module_options({"fast_math": False, "fuse_fp": False})
+wp.set_module_options({"fast_math": False, "fuse_fp": False, "enable_backward": False})  # forward only
 
 DEFAULT_MARGIN = 0.05  # frames above 95% of the saturation signal are excluded
 MAX_FRAMES = 16  # frames per merge (the plan's brackets have 3)

@@ -47,7 +47,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 import warp as wp
 
-wp.set_module_options({"fast_math": False, "fuse_fp": False})
+# forward only (nothing here is differentiated): no adjoint code, about half the compile time of a cold kernel
+# cache (issue #12: compilation counts in the end-to-end run)
+wp.set_module_options({"fast_math": False, "fuse_fp": False, "enable_backward": False})
 
 # Materials of the rig's own surfaces (ASSUMED; diffuse albedo, specular albedo, isotropic alpha).
 FRAME_MATERIAL = (0.45, 0.8, 0.25)  # bead-blasted aluminium

@@ -65,7 +65,7 @@ from twin.camera.bayer import cfa_index, cfa_table
 from twin.optics.inputs import _init
 from twin.rig.camera import SensorParams
 
-wp.set_module_options({"fast_math": False, "fuse_fp": False})
+wp.set_module_options({"fast_math": False, "fuse_fp": False, "enable_backward": False})  # forward only
 
 POISSON_INVERSION_MAX = 64.0  # electrons: exact inversion below, the Cornish-Fisher quantile at and above
 MU_MAX = 1.0e12  # electrons: cap on the mean before sampling

@@ -82,7 +82,7 @@ def _grad_log_specular(wi: Any, wo: Any, ax: Any, ay: Any, f0: Any, eps: Any):
     return g_wi, g_wo, ga_x + gi_x + go_x, ga_y + gi_y + go_y
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)  # forward mode by hand: no adjoint code to compile
 def basis_jvp_kernel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any),
                      ax: wp.array(dtype=Any), ay: wp.array(dtype=Any), beta: wp.array(dtype=Any),
                      d_frame: wp.array2d(dtype=Any), d_log_alpha: wp.array2d(dtype=Any),

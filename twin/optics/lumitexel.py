@@ -24,7 +24,7 @@ Kernels:
 floating-point contraction (no FMA fusion): the two compilers place fused multiply-adds differently, so only
 then do +, -, *, / and sqrt round identically on the CPU and on CUDA. The virtual capture renders with them,
 so that one seed gives the same raw bytes on both devices (twin.camera.imaging); training keeps the fused
-ones.
+ones. They are forward only (no adjoint code, which halves a cold kernel cache's compile time).
 """
 from __future__ import annotations
 
@@ -173,7 +173,7 @@ lumitexel_rows_kernel_fast = wp.kernel(enable_backward=False, module="unique",
                                        module_options={"fast_math": True})(_lumitexel_rows)
 
 
-_EXACT = {"fuse_fp": False, "fast_math": False}
+_EXACT = {"fuse_fp": False, "fast_math": False, "enable_backward": False}
 point_frames_kernel_exact = wp.kernel(module="unique", module_options=_EXACT)(_point_frames)
 lumitexel_kernel_exact = wp.kernel(module="unique", module_options=_EXACT)(_lumitexel)
 
