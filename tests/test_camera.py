@@ -143,6 +143,37 @@ def test_pixel_rays_agree_with_cv2_undistort(paper):
     np.testing.assert_allclose(cam.pixel_rays(uv), d_ref, atol=1e-9)
 
 
+
+def test_undistort_same_bits_as_every_point_through_every_iteration(paper, monkeypatch):
+    """Camera.undistort lets a point leave the fixed-point iteration once it maps to itself exactly, block by block;
+    the oracle iterates every point the full count: the same bits, at block edges, for NaNs and any shape."""
+    import twin.rig.camera as camera_module
+
+    cam = paper.primary
+    k1, k2, p1, p2, k3 = cam.dist
+
+    def every_iteration(xy_d, iterations=20):
+        xy = np.array(xy_d, dtype=np.float64)
+        for _ in range(iterations):
+            x, y = xy[..., 0], xy[..., 1]
+            r2 = x * x + y * y
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            xy = np.stack([(xy_d[..., 0] - dx) / radial, (xy_d[..., 1] - dy) / radial], axis=-1)
+        return xy
+
+    uv = np.random.default_rng(5).uniform([-50, -50], [cam.width + 50, cam.height + 50], (3001, 2))
+    xy = (uv - cam.K[:2, 2]) @ np.linalg.inv(cam.K[:2, :2]).T
+    xy[[0, 1000, 3000]] = np.nan
+    monkeypatch.setattr(camera_module, "UNDISTORT_BLOCK", 1000)
+    for arr in (xy, xy[:3000].reshape(3, 1000, 2), xy[7]):
+        got = cam.undistort(arr)
+        assert got.shape == arr.shape
+        np.testing.assert_array_equal(got, every_iteration(arr))
+    assert not np.array_equal(cam.undistort(xy, iterations=2), every_iteration(xy))  # it does iterate
+    np.testing.assert_array_equal(cam.undistort(xy, iterations=2), every_iteration(xy, iterations=2))
+
 # --- resizing ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("factor", [0.5, 2.0, 1 / 12])
 def test_resized_maps_pixel_centres(paper, factor):
