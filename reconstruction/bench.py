@@ -226,15 +226,18 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
     full_a = simulate_lines(model, ft_ref.latent, W)
     full_b = simulate_lines(model, runs["paper_counts"].latent[:nb], W)
     full_diff = float(np.max(np.abs(full_a - full_b)) / max(float(np.max(np.abs(full_b))), 1e-30))
-    lumi = exact if exact is not None else decoded_lumitexels(model, runs["default"].latent)
+    # each precision's fit of the same latents, decoded in that precision as `hemicube reconstruct` decodes them
+    lumi = {p: exact if exact is not None else decoded_lumitexels(model, runs["default"].latent, precision=p)
+            for p in PRECISIONS}
     few = min(64, len(pos))  # warm-up of both precisions, untimed, as fine-tuning's above
     for precision in PRECISIONS:
-        fit_ggx(rig, pos[:few], lumi if callable(lumi) else lumi[:few], lines=lines[:few], line_weights=W,
+        m = lumi[precision]
+        fit_ggx(rig, pos[:few], m if callable(m) else m[:few], lines=lines[:few], line_weights=W,
                 config=FitConfig(device=dev, iterations=1, precision=precision))
     fits = {}
     for name, cfg in (("default", FitConfig(device=dev)), ("float32", FitConfig(device=dev, precision="float32"))):
         t = time.perf_counter()
-        fit = fit_ggx(rig, pos, lumi, lines=lines, line_weights=W, config=cfg)
+        fit = fit_ggx(rig, pos, lumi[cfg.precision], lines=lines, line_weights=W, config=cfg)
         sync()
         fits[name] = (fit, time.perf_counter() - t)
     return t_decode, runs, ft_seconds, (nb, t_finetune_ref, full_diff), check, fits

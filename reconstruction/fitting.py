@@ -171,9 +171,10 @@ class FitConfig:
     loss: str = "log1p"  # ours, measured
     seed: int = 0  # the neural method's initialisation and batches (the direct method draws nothing)
     device: str = "cpu"
-    # direct, analytic Jacobian (ours, issue #12): the projections of the bases' derivatives onto the photos' weights
-    # on a CUDA device in TF32 ("tf32", the tensor cores' 10-bit mantissa) or "float32". Only the Gauss-Newton
-    # system's direction: the loss that accepts or refuses a step and the closed-form albedos stay float32, so
+    # direct, analytic Jacobian (ours, issue #12): the projections of the bases' derivatives onto the photos' weights,
+    # and those of the initial candidates (_best_candidate: they are only ranked), on a CUDA device in TF32 ("tf32",
+    # the tensor cores' 10-bit mantissa) or "float32". Only the Gauss-Newton system's direction and the starting
+    # point: the loss that accepts or refuses a step and the closed-form albedos stay float32, so
     # the fixed point of Levenberg-Marquardt does not move (docs/performance.md: the fit's median per-texel loss
     # against float32's, checked by `hemicube bench reconstruct`). The CPU's products are float32 either way.
     precision: str = "tf32"
@@ -307,8 +308,17 @@ class _Problem:
 
 
 def _lumitexels_of(source, idx: torch.Tensor, leds: int) -> torch.Tensor:
-    """A lumitexel source's lumitexels of the texels idx, checked as fit_ggx checks an array."""
-    m = _tensor("lumitexels", source(idx), 3, idx.device)
+    """A lumitexel source's lumitexels of the texels idx, checked as fit_ggx checks an array. A float32 tensor of the
+    right shape on the device passes on one reduction (its min and max: a NaN makes both NaN) and one sync; the
+    piecewise checks, which find and name the first bad value, run only when it fails (a fit at 1024^2 decodes
+    ~16 passes of 1M texels x 36,864 values, and the checks' two syncs a piece cost ~0.5 s a pass; issue #12)."""
+    m = source(idx)
+    if (torch.is_tensor(m) and m.dtype == torch.float32 and m.device == idx.device
+            and tuple(m.shape) == (idx.numel(), leds, 3) and m.numel()):
+        lo, hi = torch.aminmax(m)
+        if bool((lo >= 0) & torch.isfinite(hi)):
+            return m
+    m = _tensor("lumitexels", m, 3, idx.device)
     _check_lumitexels(m, (idx.numel(), leds, 3))
     return m
 
@@ -800,14 +810,20 @@ def _candidate_pairs(c: FitConfig) -> tuple[list, list]:
 
 def _best_candidate(prob: _Problem, normal: torch.Tensor, pairs: list):
     """For one normal per texel, the best (loss (n,), geometry numbers (n, 5), rho_d, rho_s) over the
-    roughness / tangent candidates `pairs` (_candidate_pairs), each with its closed-form albedos."""
+    roughness / tangent candidates `pairs` (_candidate_pairs), each with its closed-form albedos. With
+    FitConfig.precision "tf32", the candidates' projections onto the photos' weights use the tensor cores (on
+    CUDA): a candidate is only ranked, Levenberg-Marquardt's float32 losses decide where the fit ends, and on the
+    paper rig these projections were about half of the candidates' time, ~20% of the fit's (issue #12)."""
+    from twin.optics.torch_ops import tf32_products
+
     c = prob.config
     n, dev = prob.n, prob.pos.device
     best = None
     for ax, ay, th in pairs:
         g = _encode_geometry(normal, torch.full((n,), th, device=dev), torch.full((n,), ax, device=dev),
                              torch.full((n,), ay, device=dev), prob.frame, c)
-        loss, rd, rs = _projected_loss(prob, _geometry(g, prob.frame, c))
+        with tf32_products(c.precision == "tf32"):
+            loss, rd, rs = _projected_loss(prob, _geometry(g, prob.frame, c))
         if best is None:
             best = [loss, g, rd, rs]
         else:
@@ -1325,8 +1341,13 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     fit errs by 15-60% and noise turns an isotropic lobe anisotropic, while the noise-free oracle fit is exact
     (docs/accuracy.md). The photos of a region are pooled, not its per-texel estimates, which noise biases.
     `resume`: the state a killed run saved (_fit_direct's checkpoint), from which the loop goes on as it would have;
-    `save(state)` is called after every step. Returns (q, info); info's joint_trials lists each trial step's [mu, its
-    relative change of F] (a refused one's >= 0)."""
+    `save(state)` is called after every step. The damping follows Nielsen (1999; Madsen, Nielsen & Tingleff 2004,
+    Eq. 2.21) rather than a fixed x4 / /3: a kept step's gain ratio rho (F's actual decrease over the decrease its
+    Gauss-Newton model predicts) scales mu by max(1/3, 1 - (2 rho - 1)^3), so a step the model predicted poorly
+    keeps mu up instead of inviting a refused trial (at 1024^2 each trial is a pass over all texels, ~4 s); a
+    refused one multiplies it by nu, which doubles with each refusal in a row. Returns (q, info); info's
+    joint_trials lists each trial step's [mu, its relative change of F, its gain ratio] (a refused one's change
+    >= 0)."""
     c = prob.config
     R, C = (int(v) for v in grid_shape)
     weights = _colour_weights(rho_d, (R, C), 1.0 / c.alpha_prior ** 2)
@@ -1360,16 +1381,17 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         rows, total, JJ, Jr = data(x)
         sigma2 = float((rows / max(_residual_count(prob) - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
         F = total / sigma2 + prior(x)
-        F0, mu, kept, cg, tried, trials = F, c.lm_damping, 0, 0, 0, []
+        F0, mu, nu, kept, cg, tried, trials = F, c.lm_damping, 2.0, 0, 0, 0, []
     else:  # the same numbers the loop held when they were saved; the system at x is recomputed (deterministic)
         x = torch.as_tensor(resume["x"], dtype=torch.float64, device=x.device)
-        sigma2, F, F0, mu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "kept", "cg", "tried"))
+        sigma2, F, F0, mu, nu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "nu", "kept", "cg",
+                                                                      "tried"))
         trials = list(resume.get("trials", []))
         rows, total, JJ, Jr = data(x) if tried < c.steps and not resume["done"] else (None,) * 4
     done = resume is not None and resume["done"]
 
     def state():
-        return {"x": x.cpu().numpy(), "sigma2": sigma2, "F": F, "F0": F0, "mu": mu, "kept": kept, "cg": cg,
+        return {"x": x.cpu().numpy(), "sigma2": sigma2, "F": F, "F0": F0, "mu": mu, "nu": nu, "kept": kept, "cg": cg,
                 "tried": tried, "done": done, "trials": trials}
 
     while not done and tried < c.steps:
@@ -1382,17 +1404,23 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         step, it = _block_pcg(H_damped, weights, (R, C), -g, prior_dims, 10 * (R + C))
         cg += it
         xn = x + step
+        # the model's decrease -(2 g.h + h (H + L) h): F's gradient is 2 g and its Gauss-Newton Hessian 2 (H + L)
+        Hh = (H @ step[..., None])[..., 0]
+        Hh[:, prior_dims] += _laplacian(step[:, prior_dims], weights, (R, C))
+        predicted = -float(2 * (g * step).sum() + (step * Hh).sum())
         # a trial step is evaluated by its loss alone, and a kept one's Gauss-Newton system computed after: at 1024^2
         # on the paper rig a pass of losses costs ~4 s and one of systems ~9 s, and about half the trials are refused
         # (docs/performance.md, issue #12)
         Fn = data(xn, False)[1] / sigma2 + prior(xn)
         refused = not math.isfinite(Fn) or Fn >= F
-        trials.append([mu, Fn / F - 1 if math.isfinite(Fn) else None])
+        rho = (F - Fn) / predicted if math.isfinite(Fn) and predicted > 0 else None
+        trials.append([mu, Fn / F - 1 if math.isfinite(Fn) else None, rho])
         if refused:
-            mu *= 4
+            mu, nu = mu * nu, nu * 2
             done = mu > 1e10
         else:
-            gain, x, F, mu, kept = (F - Fn) / F, xn, Fn, mu / 3, kept + 1
+            scale = max(1 / 3, 1 - (2 * rho - 1) ** 3) if rho is not None else 1 / 3
+            gain, x, F, mu, nu, kept = (F - Fn) / F, xn, Fn, mu * scale, 2.0, kept + 1
             done = gain < c.tolerance
             if not done:
                 rows, total, JJ, Jr = data(x)

@@ -234,7 +234,8 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     stages.link_stage("finetune", out)
 
     t = stage("fitting")
-    lumi = decoded_lumitexels(model, latent)  # decoded chunk by chunk as the fit goes (issue #12)
+    # decoded chunk by chunk as the fit goes, in the fine-tuning's precision (issue #12)
+    lumi = decoded_lumitexels(model, latent, precision=ft_cfg.precision)
     keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
     # the fit's measured photos (ours, issue #14): the kept lines and the 64 learned-pattern photos of the primary
     # view, and those of the secondary view: the learned patterns light many LEDs at once, so they sample narrow

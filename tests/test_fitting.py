@@ -200,9 +200,19 @@ def test_a_lumitexel_source_fits_as_the_array_does(mini, fitted, loss):
     assert a.history == b.history and max(asked) <= 4
     for bad, message in ((lambda idx: torch.as_tensor(m)[idx][:, :-1], "L_upper"),
                          (lambda idx: -torch.as_tensor(m)[idx], ">= 0"),
-                         (lambda idx: torch.full((idx.numel(), m.shape[1], 3), np.nan), "lumitexels contains NaN")):
+                         (lambda idx: torch.full((idx.numel(), m.shape[1], 3), np.nan), "lumitexels contains NaN"),
+                         (lambda idx: _one_bad(torch.as_tensor(m)[idx], np.nan), "lumitexels contains NaN"),
+                         (lambda idx: _one_bad(torch.as_tensor(m)[idx], np.inf), "lumitexels contains NaN or Inf"),
+                         (lambda idx: _one_bad(torch.as_tensor(m)[idx], -np.inf), "lumitexels contains NaN or Inf")):
         with pytest.raises(ValueError, match=message):
             fit_ggx(mini, truth["position"], bad, lines=lines, line_weights=w, config=cfg)
+
+
+def _one_bad(m: torch.Tensor, value: float) -> torch.Tensor:
+    """m with one value set to `value` (a source's chunk that the quick min/max check must not pass)."""
+    m = m.clone()
+    m[-1, 3, 1] = value
+    return m
 
 
 def test_bad_inputs(mini, fitted):
