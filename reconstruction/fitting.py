@@ -1384,8 +1384,8 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         F0, mu, nu, kept, cg, tried, trials = F, c.lm_damping, 2.0, 0, 0, 0, []
     else:  # the same numbers the loop held when they were saved; the system at x is recomputed (deterministic)
         x = torch.as_tensor(resume["x"], dtype=torch.float64, device=x.device)
-        sigma2, F, F0, mu, nu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "nu", "kept", "cg",
-                                                                      "tried"))
+        sigma2, F, F0, mu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "kept", "cg", "tried"))
+        nu = resume.get("nu", 2.0)  # a state saved before Nielsen's rule has none: it goes on as after a kept step
         trials = list(resume.get("trials", []))
         rows, total, JJ, Jr = data(x) if tried < c.steps and not resume["done"] else (None,) * 4
     done = resume is not None and resume["done"]

@@ -311,9 +311,12 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     noisy = lines * (1 + 0.004 * rng.standard_normal(lines.shape)).astype(np.float32)
     m = m * (1 + 0.02 * rng.standard_normal(m.shape)).astype(np.float32)  # a decoder's error, ~2%
 
+    trials = []
+
     def errors(prior):  # |log alpha| and relative rho_s errors per texel
         r = fit_ggx(mini, pos, m, lines=noisy, line_weights=w, grid_shape=(R, C),
                     config=FitConfig(alpha_prior=prior, device=device))
+        trials.extend(r.info.get("joint_trials", []))
         return (np.abs(np.log(np.sqrt(r.alpha_x * r.alpha_y) / np.sqrt(p["alpha_x"] * p["alpha_y"]))),
                 np.abs(r.rho_s.mean(1) / p["rho_s"].mean(1) - 1))
 
@@ -325,6 +328,17 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     assert np.median(rs_joint[weak]) < 0.5 * np.median(rs_alone[weak])
     assert np.median(joint[~weak]) < 0.02 and np.max(np.abs(joint[~weak] - alone[~weak])) < 0.01
     assert np.median(rs_joint[~weak]) < 0.01
+    # the joint prior's damping (Nielsen's rule): a kept trial (F fell, gain ratio rho > 0) scales mu by
+    # max(1/3, 1 - (2 rho - 1)^3), a refused one by nu, which starts at 2 and doubles with each refusal in a row
+    assert len(trials) >= 3 and trials[0][0] == FitConfig().lm_damping and all(len(t) == 3 for t in trials)
+    nu = 2.0
+    for (mu, change, rho), (mu_next, _, _) in zip(trials, trials[1:]):
+        if change < 0:
+            assert rho > 0 and mu_next == pytest.approx(mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), rel=1e-12)
+            nu = 2.0
+        else:
+            assert mu_next == pytest.approx(mu * nu, rel=1e-12)
+            nu *= 2
 
 
 def test_diffuse_normal_finds_a_steep_tilt(mini):
