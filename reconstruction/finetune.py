@@ -353,15 +353,12 @@ def decoded_lumitexels(model, latent72, batch: int = 16384, max_bytes: int = 2 *
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     x = _checked_latent72(model, latent72).to(_model_device(model))
-    if x.shape[0] * _check_model(model)[2] * 3 * 4 <= max_bytes:
-        with tf32_products(precision == "tf32"):
-            return _decode_rows(model, x, batch, x.device)
 
-    def source(idx: torch.Tensor) -> torch.Tensor:
+    def source(idx: torch.Tensor | None = None) -> torch.Tensor:
         with tf32_products(precision == "tf32"):
-            return _decode_rows(model, x[idx.to(x.device)], batch, x.device)
+            return _decode_rows(model, x if idx is None else x[idx.to(x.device)], batch, x.device)
 
-    return source
+    return source() if x.shape[0] * _check_model(model)[2] * 3 * 4 <= max_bytes else source
 
 
 def _checked_latent72(model, latent72) -> torch.Tensor:

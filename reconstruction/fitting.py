@@ -308,17 +308,8 @@ class _Problem:
 
 
 def _lumitexels_of(source, idx: torch.Tensor, leds: int) -> torch.Tensor:
-    """A lumitexel source's lumitexels of the texels idx, checked as fit_ggx checks an array. A float32 tensor of the
-    right shape on the device passes on one reduction (its min and max: a NaN makes both NaN) and one sync; the
-    piecewise checks, which find and name the first bad value, run only when it fails (a fit at 1024^2 decodes
-    ~16 passes of 1M texels x 36,864 values, and the checks' two syncs a piece cost ~0.5 s a pass; issue #12)."""
-    m = source(idx)
-    if (torch.is_tensor(m) and m.dtype == torch.float32 and m.device == idx.device
-            and tuple(m.shape) == (idx.numel(), leds, 3) and m.numel()):
-        lo, hi = torch.aminmax(m)
-        if bool((lo >= 0) & torch.isfinite(hi)):
-            return m
-    m = _tensor("lumitexels", m, 3, idx.device)
+    """A lumitexel source's lumitexels of the texels idx, checked as fit_ggx checks an array."""
+    m = _tensor("lumitexels", source(idx), 3, idx.device)
     _check_lumitexels(m, (idx.numel(), leds, 3))
     return m
 
@@ -368,6 +359,8 @@ def _tensor(name: str, x, ndim: int, device: torch.device) -> torch.Tensor:
         t = torch.as_tensor(a, dtype=torch.float32, device=device)
     if t.ndim != ndim or t.shape[-1] != 3:
         raise ValueError(f"{name} must have {ndim} dimensions with 3 last (RGB or xyz), got shape {tuple(t.shape)}")
+    if t.numel() and bool(torch.isfinite(torch.stack(torch.aminmax(t))).all()):
+        return t  # one reduction and one sync (_negative's reason); the pieces only to name the first bad value
     for i, part in enumerate(_pieces(t)):
         bad = ~torch.isfinite(part)
         if bad.any():
@@ -380,14 +373,17 @@ _PIECE = 2 ** 24  # elements a piece: _pieces
 
 
 def _pieces(t: torch.Tensor):
-    """The flattened tensor in pieces of _PIECE elements: the checks and means of the fit's inputs go piece by
-    piece, so that none makes a temporary the size of the paper rig's lumitexels (9.7 GB per 65,536 texels; a
-    float64 mean of them cast the whole tensor first)."""
+    """The flattened tensor in pieces of _PIECE elements: the means of the fit's inputs, and the search for a bad
+    value, go piece by piece, so that none makes a temporary the size of the paper rig's lumitexels (9.7 GB per
+    65,536 texels; a float64 mean of them cast the whole tensor first)."""
     return t.reshape(-1).split(_PIECE)
 
 
 def _negative(t: torch.Tensor) -> bool:
-    return any(bool((p < 0).any()) for p in _pieces(t))
+    """Whether t holds a value below 0, by one reduction without temporaries (_tensor's checks: a fit at 1024^2 checks
+    ~16 passes of 1M decoded lumitexels x 36,864 values, ~2,300 pieces a pass, and two checks with a sync for each
+    piece were the way before; issue #12). NaN is _tensor's to report, which checks first."""
+    return bool(t.numel()) and bool(torch.amin(t) < 0)
 
 
 def _mean(t: torch.Tensor) -> float:
