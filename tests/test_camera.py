@@ -150,18 +150,7 @@ def test_undistort_same_bits_as_every_point_through_every_iteration(paper, monke
     import twin.rig.camera as camera_module
 
     cam = paper.primary
-    k1, k2, p1, p2, k3 = cam.dist
-
-    def every_iteration(xy_d, iterations=20):
-        xy = np.array(xy_d, dtype=np.float64)
-        for _ in range(iterations):
-            x, y = xy[..., 0], xy[..., 1]
-            r2 = x * x + y * y
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            xy = np.stack([(xy_d[..., 0] - dx) / radial, (xy_d[..., 1] - dy) / radial], axis=-1)
-        return xy
+    every_iteration = cam.undistort_reference
 
     uv = np.random.default_rng(5).uniform([-50, -50], [cam.width + 50, cam.height + 50], (3001, 2))
     xy = (uv - cam.K[:2, 2]) @ np.linalg.inv(cam.K[:2, :2]).T
@@ -173,6 +162,7 @@ def test_undistort_same_bits_as_every_point_through_every_iteration(paper, monke
         np.testing.assert_array_equal(got, every_iteration(arr))
     assert not np.array_equal(cam.undistort(xy, iterations=2), every_iteration(xy))  # it does iterate
     np.testing.assert_array_equal(cam.undistort(xy, iterations=2), every_iteration(xy, iterations=2))
+
 
 # --- resizing ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("factor", [0.5, 2.0, 1 / 12])

@@ -18,20 +18,6 @@ import twin
 out_path, repeats = sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 3
 
 
-def every_iteration(cam, xy_d, iterations=20):
-    """The baseline: the fixed-point iteration as it was, every point through every iteration."""
-    k1, k2, p1, p2, k3 = cam.dist
-    xy = np.array(xy_d, dtype=np.float64)
-    for _ in range(iterations):
-        x, y = xy[..., 0], xy[..., 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        xy = np.stack([(xy_d[..., 0] - dx) / radial, (xy_d[..., 1] - dy) / radial], axis=-1)
-    return xy
-
-
 def best(fn):
     times, out = [], None
     for _ in range(repeats):
@@ -49,7 +35,7 @@ for name in rig.cameras:
     yy, xx = np.mgrid[0:cam.height, 0:cam.width]
     uv = np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64)
     xy = (uv - cam.K[:2, 2]) @ np.linalg.inv(cam.K)[:2, :2].T
-    t_old, a = best(lambda: every_iteration(cam, xy))
+    t_old, a = best(lambda: cam.undistort_reference(xy))
     t_new, b = best(lambda: cam.undistort(xy))
     equal = bool(np.array_equal(a, b, equal_nan=True))
     same &= equal
