@@ -12,7 +12,8 @@ def cmd_reconstruct(args) -> int:
 
     over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm),
                               ("holdout_line", args.holdout_line), ("network", args.network),
-                              ("device", args.device), ("footprint", args.footprint)) if v is not None}
+                              ("device", args.device), ("footprint", args.footprint),
+                              ("finetune_photos", args.finetune_photos)) if v is not None}
     config = replace(ReconstructConfig(), **over)
     if args.finetune_precision is not None:
         config = replace(config, finetune=replace(config.finetune, precision=args.finetune_precision))
@@ -107,7 +108,7 @@ def register(sub) -> None:
     """Add the reconstruction's sub-commands to the front's parser."""
     from .extraction import FOOTPRINTS
     from .finetune import PRECISIONS
-    from .pipeline import ReconstructConfig
+    from .pipeline import FINETUNE_PHOTOS, ReconstructConfig
     from .train import TrainConfig
 
     rc, tc = ReconstructConfig(), TrainConfig()
@@ -125,6 +126,9 @@ def register(sub) -> None:
     s.add_argument("--footprint", choices=tuple(FOOTPRINTS), help="how a texel's photo value is read: "
                    "the value at its centre, the mean over its cell's pixels (less noise where a texel spans many "
                    f"pixels), or after the reference's anti-aliasing blur (default: {rc.footprint})")
+    s.add_argument("--finetune-photos", choices=FINETUNE_PHOTOS, help="the photos fine-tuning fits: the line photos "
+                   "(the paper's) or also the primary view's learned-pattern photos (default: "
+                   f"{rc.finetune_photos})")
     s.add_argument("--finetune-precision", choices=PRECISIONS, help="fine-tuning's matrix products on a CUDA device: "
                    "TF32 (tensor cores; within 1%% of float32's objective, measured) or float32; the CPU's are float32 "
                    f"either way (default: {rc.finetune.precision})")

@@ -7,7 +7,8 @@ to `reconstruction.validation`).
     1. alignment       secondary -> primary, uniform-light photos (reconstruction.alignment; paper §8)
     2. extraction      texture grid + per-texel measurements (reconstruction.extraction; reference §6.1, §6.3)
     3. decode          encoder -> 56-D latent per texel (reconstruction.latents; paper §7)
-    4. fine-tuning     three passes against the line photos, one held out (reconstruction.finetune; §7.1)
+    4. fine-tuning     three passes against the line photos, one held out (reconstruction.finetune; §7.1), and
+                       optionally the learned-pattern photos (ReconstructConfig.finetune_photos)
     5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.fitting; §7.2)
 
 The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone). Stages 1, 2
@@ -29,6 +30,9 @@ from .finetune import FinetuneConfig
 from .fitting import FitConfig
 from .output import STAGES, ReconstructionFolder, stages_folder
 
+FINETUNE_PHOTOS = ("lines", "lines+learned")
+
+
 @dataclass(frozen=True)
 class ReconstructConfig:
     # texels per side of the texture grid; the paper reconstructs 1024 x 1024 (reference §6.1). 48 is this
@@ -41,6 +45,10 @@ class ReconstructConfig:
     # how a texel's photo value is read: "point" (at its centre), "cell" (the mean over its cell's pixels) or
     # "gaussian" (the reference's anti-aliasing blur); reconstruction.extraction, step 2
     footprint: str = "point"
+    # the photos fine-tuning fits (step 4): "lines" (the 64 linear lights less the held-out one, as the paper and
+    # the reference) or "lines+learned" (and the primary view's learned-pattern photos, which light many LEDs at
+    # once: they constrain directions of the latent that no line sees; docs/accuracy.md, issue #13)
+    finetune_photos: str = "lines"
     network: str = "pretrained"    # "pretrained" (shipped for this rig) or a `hemicube train` run folder
     device: str = "cpu"
     align: AlignConfig = field(default_factory=AlignConfig)
@@ -52,6 +60,9 @@ class ReconstructConfig:
 
         if self.footprint not in FOOTPRINTS:
             raise ValueError(f"ReconstructConfig.footprint must be one of {tuple(FOOTPRINTS)}, got {self.footprint!r}")
+        if self.finetune_photos not in FINETUNE_PHOTOS:
+            raise ValueError(f"ReconstructConfig.finetune_photos must be one of {FINETUNE_PHOTOS}, "
+                             f"got {self.finetune_photos!r}")
 
 
 @dataclass
@@ -128,6 +139,16 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
             shutil.rmtree(stages.dir, ignore_errors=True)
     recon.directory = out
     return recon
+
+
+def _photos(meas, learned: bool, lines=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+    """(N, K, 3) photos and their (K, L, 3) patterns: the `lines` chosen, then, if `learned`, the primary view's
+    learned-pattern photos (the same units: both are measurements of the decoder's lumitexel)."""
+    photos, weights = meas.lines[:, lines], meas.line_weights[lines]
+    if not learned:
+        return photos, weights
+    return (np.concatenate([photos, meas.learned_photos[:, 0]], axis=1),
+            np.concatenate([weights, meas.learned_weights], axis=0))
 
 
 def _key(*parts) -> str:
@@ -213,7 +234,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     if not 0 <= hold < meas.lines.shape[1]:
         raise ValueError(f"holdout_line must lie in [0, {meas.lines.shape[1]}), got {hold}")
     ft_cfg = _with_holdout(config.finetune, hold, config.device)
-    key = _key(key, _network_digest(model), asdict(ft_cfg))
+    key = _key(key, _network_digest(model), asdict(ft_cfg), config.finetune_photos)
     rec = finished("finetune", key, "finetune")
     if rec is None:  # the decoded latents are fine-tuning's start; a resumed run needs only the network
         z56 = decode(model, meas.learned, device=config.device)
@@ -224,7 +245,9 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     else:
         t = stage(f"fine-tuning (line {hold} held out)")
         checkpoint = _Checkpoint(stages, "finetune_state", key)
-        ft = finetune(model, z56, meas.lines, meas.line_weights, ft_cfg, checkpoint=checkpoint)
+        # the lines come first, so the held-out index is the same in both sets
+        ft = finetune(model, z56, *_photos(meas, config.finetune_photos == "lines+learned"), ft_cfg,
+                      checkpoint=checkpoint)
         latent, ft_info = ft.latent, {"iterations": ft.iterations, "seconds": ft.seconds}
         stages.write_latent(latent, grid.shape, ft.passes)
         done("finetune", key, t, finetune=ft_info)
@@ -241,8 +264,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     # view, and those of the secondary view: the learned patterns light many LEDs at once, so they sample narrow
     # lobes between the lines, and the 45-degree view sees the grazing half-angles where Fresnel lifts a weak
     # specular lobe (docs/accuracy.md: ceramic alpha 21% -> 12% with the primary photos, ...)
-    photos = np.concatenate([meas.lines[:, keep], meas.learned_photos[:, 0]], axis=1)
-    weights = np.concatenate([meas.line_weights[keep], meas.learned_weights], axis=0)
+    photos, weights = _photos(meas, True, keep)
     fit_cfg = replace(config.fit, device=config.device)
     checkpoint = _Checkpoint(stages, "fit_state", _key(key, asdict(fit_cfg)))
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,

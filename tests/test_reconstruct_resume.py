@@ -141,3 +141,39 @@ def test_killed_between_keeping_fine_tuning_and_forgetting_its_checkpoint(valida
     reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
     assert ReconstructionFolder(out).summary()["resumed"] == ["alignment", "extraction", "finetune"]
     assert _files(out) == _files(run_a)
+
+
+def test_fine_tuning_on_the_learned_photos_too(validate_dir, run_a, tmp_path, monkeypatch):
+    """`finetune_photos="lines+learned"` is part of fine-tuning's stage key, and fits the primary view's
+    learned-pattern photos beside the lines: its latents explain those photos better than the lines-only latents of
+    run A (reference §4's objective, a sum of squared differences of square roots), with the same held-out line."""
+    import numpy as np
+
+    import reconstruction.fitting as fitting
+    import twin
+    from reconstruction.finetune import simulate_lines
+    from reconstruction.pipeline import load_network
+
+    def stop(*a, **k):
+        raise RuntimeError("stopped in the fit")
+
+    out = tmp_path / "F"
+    monkeypatch.setattr(fitting, "fit_ggx", stop)
+    with pytest.raises(RuntimeError, match="stopped"):
+        reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    monkeypatch.undo()
+    reconstruct(validate_dir / "capture", out, ReconstructConfig(resolution=12, finetune_photos="lines+learned"),
+                progress=False)
+    both, lines = ReconstructionFolder(out), ReconstructionFolder(run_a)
+    assert both.summary()["resumed"] == ["alignment", "extraction"]  # fine-tuning's key differs
+    assert both.summary()["holdout_line"] == lines.summary()["holdout_line"]
+    meas = both.measurements()
+    model = load_network("pretrained", twin.load_rig("mini"))
+
+    def misfit(folder):
+        sim = simulate_lines(model, folder.latent_passes()["pass3"], meas.learned_weights)
+        return float(np.square(np.sqrt(sim + 1e-6) - np.sqrt(np.maximum(meas.learned_photos[:, 0], 0) + 1e-6)).sum())
+
+    assert misfit(both) < 0.8 * misfit(lines)  # 101 against 143 (2026-11-27)
+    with pytest.raises(ValueError, match="finetune_photos must be one of"):
+        ReconstructConfig(finetune_photos="learned")
