@@ -32,7 +32,8 @@ def cmd_train(args) -> int:
                               ("checkpoint_every", args.checkpoint_every),
                               ("pair_fraction", args.pair_fraction), ("dropout", args.dropout),
                               ("measurement_noise", args.measurement_noise),
-                              ("architecture", args.architecture), ("patterns_per_view", args.patterns_per_view))
+                              ("architecture", args.architecture), ("patterns_per_view", args.patterns_per_view),
+                              ("peak_term", args.peak_term))
             if v is not None}
     if args.materials is not None:
         over["sampling"] = replace(cfg.sampling, materials=args.materials)
@@ -165,6 +166,8 @@ def register(sub) -> None:
                    "paper §6)")
     s.add_argument("--architecture", choices=("paper", "compact"), help=f"network: the released one scaled to the "
                    f"rig, or the compact one that ships (default: {tc.architecture})")
+    s.add_argument("--peak-term", action="store_true", default=None, help="the decoder adds one lobe over the LEDs' "
+                   "directions (narrow specular peaks; docs/performance.md)")
     s.add_argument("--measurement-noise", type=float, help=f"sigma of the multiplicative noise on the measurements in "
                    f"training (default: {tc.measurement_noise}, paper §6)")
     s.add_argument("--patterns-per-view", type=int, help=f"K signed patterns, captured as 2K photos (default: "

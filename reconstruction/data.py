@@ -276,6 +276,13 @@ def perturb_for_secondary(params: dict, config: SamplingConfig, generator: torch
 _UPPER: dict = {}
 
 
+def led_directions(rig) -> np.ndarray:
+    """(L_upper, 3) float32 unit vectors from the sample's centre to each lumitexel LED, world frame (the decoder's
+    peak term, reconstruction.network.NetworkConfig.peak_term)."""
+    d = np.asarray(rig.leds.positions)[~np.asarray(rig.is_bottom)] - np.asarray(rig.sample.origin)
+    return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+
 def _upper_index(rig, device: torch.device) -> torch.Tensor:
     key = (rig.digest(), str(device))
     if key not in _UPPER:

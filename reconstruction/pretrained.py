@@ -143,9 +143,11 @@ def score_network(model: AcquisitionNet, rig, config: TrainConfig, device="cpu")
 
 
 def _as_shipped(state: dict) -> dict:
-    """The tensors as they ship: weight matrices and the patterns (ndim >= 2) in float16, biases and the
-    BatchNorm statistics (whose variances may exceed float16's range) in float32."""
-    return {k: (v.detach().half() if v.ndim >= 2 and v.is_floating_point() else v.detach()).cpu().contiguous()
+    """The tensors as they ship: weight matrices and the patterns (ndim >= 2) in float16, biases, the BatchNorm
+    statistics (whose variances may exceed float16's range) and the peak term's LED directions in float32 (a unit
+    vector rounded to float16 is off by up to 5e-4, which a narrow lobe's kappa of 10^4 turns into e^5)."""
+    return {k: (v.detach().half() if v.ndim >= 2 and v.is_floating_point() and not k.endswith("led_directions")
+                else v.detach()).cpu().contiguous()
             for k, v in state.items()}
 
 

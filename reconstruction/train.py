@@ -62,7 +62,7 @@ import torch
 
 from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
 
-from .data import LumitexelStream, SamplingConfig, heldout_set, stream_seed
+from .data import LumitexelStream, SamplingConfig, heldout_set, led_directions, stream_seed
 from .distributed import Dist, any_rank, all_sum, barrier, gather_objects, globalise_batchnorm, join
 from .network import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
 
@@ -108,6 +108,7 @@ class TrainConfig:
     dropout: float = 0.3          # paper §6: 30%
     measurement_noise: float = 0.05  # paper §6: 5% multiplicative noise
     architecture: str = "paper"   # "paper" (released) or "compact" (shippable; reconstruction.network)
+    peak_term: bool = False       # the decoder's lobe over the LEDs' directions (NetworkConfig.peak_term; issue #13)
     # training data distributions (reconstruction.data.SamplingConfig defaults, sources given there)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     # a design's layout and pattern family (twin.design): lumitexel indices the patterns leave off, and a
@@ -132,7 +133,7 @@ class TrainConfig:
         return NetworkConfig(num_leds=int(num_leds), patterns_per_view=self.patterns_per_view,
                              dropout=self.dropout, measurement_noise=self.measurement_noise,
                              architecture=self.architecture, leds_off=self.leds_off,
-                             fixed_patterns=bool(self.patterns_file))
+                             fixed_patterns=bool(self.patterns_file), peak_term=bool(self.peak_term))
 
     def to_json(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self)))
@@ -468,7 +469,10 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
         # the held-out set is evaluated by rank 0 alone (eval mode: no cross-rank statistics)
         held = heldout_set(rig, config.sampling, config.heldout_size, config.seed, device) if ctx.is_main else None
         torch.manual_seed(config.seed)
-        model = AcquisitionNet(net_cfg).to(device)
+        model = AcquisitionNet(net_cfg)
+        if net_cfg.peak_term:
+            model.decoder.set_led_directions(led_directions(rig))
+        model = model.to(device)
         if config.patterns_file:
             model.patterns.set_weights(_fixed_weights(config.patterns_file, rig, config.patterns_per_view))
         model.train()

@@ -451,3 +451,59 @@ def test_albedo_swap_disentangles():
     assert rel <= 0.3 and scale <= 0.2, (rel, scale)
     rel_ctrl, _ = _train_swap(swap=False)
     assert rel_ctrl > 2 * rel, (rel, rel_ctrl)
+
+
+# ------------------------------------------------------------------------------------------------ peak term
+
+
+def _directions(n: int, seed: int = 0) -> np.ndarray:
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 0.1  # the upper hemisphere, as the rig's LEDs seen from the sample
+    return (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+
+@pytest.mark.parametrize("architecture", ["paper", "compact"])
+def test_peak_term_adds_one_lobe_over_the_led_directions(architecture):
+    """NetworkConfig.peak_term: the lumitexel is the decoder's own plus A exp(kappa (d . c - 1)) for the head's
+    (c, kappa, A), against that sum written out in float64 numpy (rtol 1e-10); without it nothing else draws
+    differently (the head is drawn last); gradients through it agree with central differences in float64."""
+    L = 48
+    cfg = _quiet(L, architecture=architecture, peak_term=True)
+    torch.manual_seed(3)
+    with_peak = AcquisitionNet(cfg)
+    torch.manual_seed(3)
+    without = AcquisitionNet(_quiet(L, architecture=architecture))
+    theirs = dict(without.named_parameters())
+    assert all(torch.equal(p, theirs[k]) for k, p in with_peak.named_parameters() if not k.startswith("decoder.peak"))
+    dec = with_peak.decoder.double().eval()
+    dirs = _directions(L)
+    dec.set_led_directions(dirs)
+    c, kappa, A = np.array([0.3, -0.2, 0.9]), 40.0, 0.7
+    with torch.no_grad():
+        dec.peak[-1].weight.zero_()
+        dec.peak[-1].bias.copy_(torch.tensor([*c, math.log(kappa), math.log(A)]))
+    z = torch.randn(5, cfg.latent_dim, dtype=torch.float64)
+    with torch.no_grad():
+        m = log_to_lumitexel(dec(z)).numpy()
+        base = np.expm1(dec.net(z).numpy())
+    cu = c / np.linalg.norm(c)
+    expected = base + A * np.exp(kappa * (dirs.astype(np.float64) @ cu - 1.0))
+    np.testing.assert_allclose(m, np.maximum(expected, 0.0), rtol=1e-10, atol=1e-12)
+    zg = z[:2].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: dec(x), (zg,), eps=1e-6, atol=1e-6)
+
+
+def test_peak_term_needs_its_directions():
+    dec = Decoder(_quiet(16, architecture="compact", peak_term=True))
+    with pytest.raises(ValueError, match="peak term has no LED directions"):
+        dec(torch.zeros(1, 56))
+    with pytest.raises(ValueError, match=r"led directions must be \(16, 3\) finite unit vectors"):
+        dec.set_led_directions(np.ones((16, 3)))
+    with pytest.raises(ValueError, match="has no peak term"):
+        Decoder(_quiet(16)).set_led_directions(_directions(16))
+    dec.set_led_directions(_directions(16))
+    other = Decoder(_quiet(16, architecture="compact", peak_term=True))
+    other.load_state_dict(dec.state_dict())  # weights that carry them
+    assert torch.equal(other.led_directions, dec.led_directions) and other(torch.zeros(1, 56)).shape == (1, 16)
+    with pytest.raises(ValueError):
+        NetworkConfig(16, peak_term="yes")

@@ -123,3 +123,30 @@ def test_compact_architecture_fits_the_ship_limit_and_ships_as_scored(tmp_path):
     assert "\n" not in str(e.value)
     assert hemicube.cli.main(["network", "ship", str(tmp_path / "none"), "-o", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_a_peak_term_network_trains_ships_and_loads_with_its_directions(tmp_path):
+    """`hemicube train --peak-term` (mini rig, compact, 4 steps): the run's decoder carries the rig's LED directions;
+    `network ship` keeps them in float32 beside the float16 matrices; the shipped network loads with them and
+    re-scores to model.json's held-out loss."""
+    import hemicube.cli
+    from safetensors.torch import load_file
+
+    from reconstruction.data import led_directions
+    from reconstruction.pretrained import load_shipped, score_network
+    from reconstruction.train import TrainConfig, load_run_model
+
+    run, dest = tmp_path / "run", tmp_path / "ship"
+    assert hemicube.cli.main(["train", "--rig", "mini", "--architecture", "compact", "--peak-term", "--steps", "4",
+                              "--eval-every", "2", "--no-progress", "-o", str(run)]) == 0
+    rig = twin.load_rig("mini")
+    assert np.array_equal(load_run_model(run).decoder.led_directions.numpy(), led_directions(rig))
+    assert hemicube.cli.main(["network", "ship", str(run), "-o", str(dest)]) == 0
+    tensors = load_file(str(dest / "model.safetensors"))
+    assert tensors["decoder.led_directions"].dtype == torch.float32
+    assert tensors["decoder.peak.0.weight"].dtype == torch.float16
+    model, info = load_shipped(dest)
+    assert info["config"]["peak_term"] is True
+    assert np.array_equal(model.decoder.led_directions.numpy(), led_directions(rig))
+    again = score_network(model, rig, TrainConfig.from_json(info["config"]))
+    assert again["heldout_loss"] == pytest.approx(info["heldout_loss"], rel=1e-6)

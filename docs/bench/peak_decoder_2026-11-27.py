@@ -12,6 +12,9 @@ directions d_l from the sample's centre:
 
 with y the compact decoder's output (log(1 + m_base)) and (c, kappa, A) from a small head on the decoder's
 bottleneck: 256 -> 128 -> 5 (c unnormalised, log kappa, log A). Its cost: 5 numbers and one (B, L) pass per decode.
+It is reconstruction.network's `NetworkConfig.peak_term` (`hemicube train --peak-term`); the recorded run used this
+script's own copy of it, which drew the same initial weights and computed the same terms (checked on the mini rig:
+the same losses to the bit over 30 steps).
 Both networks: the shipped paper network's training settings (TrainConfig: compact, dropout 0, batch 1024, lr 5e-4,
 seed 0), the same data stream (reconstruction.data.LumitexelStream) and albedo-swap steps; reconstruction.pretrained.
 score_network's held-out Eq. 3 and narrow-peak figures at the end. A record of how the numbers were measured, not
@@ -21,12 +24,10 @@ import json
 import sys
 import time
 
-import numpy as np
 import torch
-from torch import nn
 
 import twin
-from reconstruction.data import LumitexelStream
+from reconstruction.data import LumitexelStream, led_directions
 from reconstruction.network import AcquisitionNet, albedo_swap_loss, lumitexel_loss
 from reconstruction.pretrained import score_network
 from reconstruction.train import TrainConfig, is_pair_step
@@ -34,42 +35,15 @@ from reconstruction.train import TrainConfig, is_pair_step
 out_path, dev, rig_name, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 cap = int(sys.argv[5]) if len(sys.argv) > 5 else 10 ** 9
 rig = twin.load_rig(rig_name)
-upper = ~np.asarray(rig.is_bottom)
-d = np.asarray(rig.leds.positions)[upper] - np.asarray(rig.sample.origin)
-DIRS = torch.tensor(d / np.linalg.norm(d, axis=1, keepdims=True), dtype=torch.float32)
-
-
-class PeakDecoder(nn.Module):
-    """The compact decoder plus one lobe over the LEDs' directions (module docstring)."""
-
-    def __init__(self, base):
-        super().__init__()
-        self.base, self.config = base, base.config
-        rank = base.net[-1].in_features
-        self.head = nn.Sequential(nn.Linear(rank, 128), nn.LeakyReLU(0.01), nn.Linear(128, 5))
-        with torch.no_grad():  # start as a wide, dim lobe straight up: kappa 25 (~0.2 rad), A e^-3
-            self.head[2].weight.mul_(0.1)
-            self.head[2].bias.copy_(torch.tensor([0.0, 0.0, 1.0, np.log(25.0), -3.0]))
-        self.register_buffer("dirs", DIRS.clone())
-
-    def forward(self, latent):
-        h = self.base.net[:-1](latent)
-        y = self.base.net[-1](h)
-        p = self.head(h)
-        c = p[:, :3] / p[:, :3].norm(dim=1, keepdim=True).clamp_min(1e-6)
-        kappa = p[:, 3:4].clamp(-5, 12).exp()
-        peak = p[:, 4:5] + kappa * (c @ self.dirs.T - 1.0)
-        return torch.logaddexp(y, peak)
 
 
 def run(peak: bool) -> dict:
     cfg = TrainConfig(rig=rig_name, architecture="compact", dropout=0.0, batch=1024 if dev != "cpu" else 64, lr=5e-4,
-                      device=dev)
-    num_upper = int(upper.sum())
+                      device=dev, peak_term=peak)
     torch.manual_seed(cfg.seed)
-    model = AcquisitionNet(cfg.network_config(num_upper))
+    model = AcquisitionNet(cfg.network_config(len(led_directions(rig))))
     if peak:
-        model.decoder = PeakDecoder(model.decoder)
+        model.decoder.set_led_directions(led_directions(rig))
     model.to(dev).train()
     stream = LumitexelStream(rig, cfg.sampling, cfg.batch, cfg.seed, dev)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
