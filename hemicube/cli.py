@@ -12,10 +12,11 @@ def cmd_validate(args) -> int:
 
     if args.suite is not None:
         return run_suite(args.suite, rig=args.rig, device=args.device, output=args.output,
-                         resolution=args.resolution, seed=args.seed, jobs=args.jobs, as_json=args.json)
+                         resolution=args.resolution, seed=args.seed, jobs=args.jobs, as_json=args.json,
+                         frames=args.frames)
     return run_validation(rig=args.rig, sample=args.sample, device=args.device, as_json=args.json,
                           output=args.output, resolution=args.resolution, seed=args.seed,
-                          progress=not args.no_progress, anyway=args.anyway)
+                          progress=not args.no_progress, anyway=args.anyway, frames=args.frames)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "holding one folder per sample and report/)")
     s.add_argument("--resolution", type=int, help="texture grid texels per side (default: the pipeline's, 48)")
     s.add_argument("--seed", type=int, default=1, help="the virtual capture's seed (default: %(default)s)")
+    s.add_argument("--frames", type=int, default=1, help="frames taken of every exposure and averaged, against the "
+                   "photos' noise (default: %(default)s)")
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.add_argument("--anyway", action="store_true", help="on the CPU, run even a capture estimated to take "
                    "hours (the paper rig) instead of stopping with the estimate")

@@ -34,10 +34,11 @@ def _sample_name(sample: str) -> str:
 
 
 def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int | None, seed: int,
-               progress: bool, network: str = "pretrained", learned=None) -> tuple[dict, list, dict]:
+               progress: bool, network: str = "pretrained", learned=None, frames: int = 1) -> tuple[dict, list, dict]:
     """Simulate a capture, reconstruct it, score it: (metrics, threshold rows, report paths). `learned` (a
     PatternSet of 2K frames) and `network` (a `hemicube train` run folder) capture and decode with another
-    network's patterns (a capture design, hemicube.design) instead of the rig's own."""
+    network's patterns (a capture design, hemicube.design) instead of the rig's own; `frames`: each exposure
+    taken that many times (twin.capture.plan.bracket_frames)."""
     from dataclasses import replace
 
     from reconstruction.metrics import check
@@ -50,13 +51,13 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int 
     # the sample's maps at least as fine as the texture grid, so that a fine grid never scores upsampled maps
     # (issue #13: capture at 1024^2, reconstruct at 1024^2)
     cap = capture(rig_obj, sample, output / "capture", seed=seed, device=device, progress=progress, learned=learned,
-                  resolution=max(SAMPLE_RESOLUTION, resolution))
+                  resolution=max(SAMPLE_RESOLUTION, resolution), frames=frames)
     config = replace(ReconstructConfig(), resolution=resolution, device=device, network=str(network))
     recon = reconstruct(cap, output / "reconstruction", config, progress=progress, rig=rig_obj)
     metrics, panels = evaluate(cap, recon, rig_obj, device=device)
     thresholds = thresholds_for(rig_obj.name, resolution, str(sample))
     rows = check(metrics, thresholds)
-    notes = [f"rig {rig_obj.name!r}, sample {sample!r}, seed {seed}, device {device}, texture grid "
+    notes = [f"rig {rig_obj.name!r}, sample {sample!r}, seed {seed}, {frames} frame(s) an exposure, device {device}, texture grid "
              f"{resolution}^2 over {recon.grid.size_mm:.1f} mm, line {recon.holdout_line} held out of fine-tuning",
              "renders compare texel values on the texture grid (network units); 'truth_maps' renders the true maps "
              "the same way: the ceiling that the photo's noise and pixel footprint allow"]
@@ -121,7 +122,8 @@ def cpu_capture_estimate(rig_obj, maps, rows: int = 1) -> dict:
 
 
 def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, output=None,
-                   resolution: int | None = None, seed: int = 1, progress: bool = True, anyway: bool = False) -> int:
+                   resolution: int | None = None, seed: int = 1, progress: bool = True, anyway: bool = False,
+                   frames: int = 1) -> int:
     """The main job: rig and forward-model checks, then capture -> reconstruct -> score (see the module
     docstring). Exit code 0 when every check and every threshold passes. On the CPU, a rig whose capture
     would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
@@ -140,8 +142,9 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
                 f"{est['render_s'] / 3600:.1f} h here ({est['evaluations']:.1e} LED evaluations; one row took "
                 f"{est['timed_s']:.1f} s), before the reconstruction's hours; use --device cuda, or --anyway to run it")
     checks, ref = _self_checks(rig_obj, device)
-    out = Path(output) if output else DEFAULT_ROOT / f"{rig_obj.name}_{_sample_name(sample)}_seed{seed}"
-    metrics, rows, paths = end_to_end(rig_obj, sample, device, out, resolution, seed, progress and not as_json)
+    out = Path(output) if output else DEFAULT_ROOT / f"{rig_obj.name}_{_sample_name(sample)}_seed{seed}{_x(frames)}"
+    metrics, rows, paths = end_to_end(rig_obj, sample, device, out, resolution, seed, progress and not as_json,
+                                      frames=frames)
     ok = all(c.passed for c in checks) and all(r["passed"] for r in rows)
     report = {
         "rig": rig_obj.name, "sample": sample, "device": device, "passed": ok,
@@ -173,13 +176,19 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
-def _suite_member(rig: str, sample: str, device: str, output: str, resolution, seed: int) -> dict:
+def _x(frames: int) -> str:
+    """The default folders' mark of frames an exposure other than one (a folder holds one capture)."""
+    return "" if frames == 1 else f"_x{frames}"
+
+
+def _suite_member(rig: str, sample: str, device: str, output: str, resolution, seed: int, frames: int = 1) -> dict:
     """One suite sample in its own process: capture -> reconstruct -> score into `output`."""
     import twin
 
     t0 = time.perf_counter()
     try:
-        metrics, rows, paths = end_to_end(twin.load_rig(rig), sample, device, Path(output), resolution, seed, False)
+        metrics, rows, paths = end_to_end(twin.load_rig(rig), sample, device, Path(output), resolution, seed, False,
+                                          frames=frames)
     except Exception as e:  # noqa: BLE001 - one sample's failure is reported in the table, not fatal to the rest
         return {"sample": sample, "passed": False, "error": f"{type(e).__name__}: {e}", "rows": [],
                 "seconds": time.perf_counter() - t0}
@@ -188,7 +197,7 @@ def _suite_member(rig: str, sample: str, device: str, output: str, resolution, s
 
 
 def suite_results(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
-                  jobs: int | None = None) -> dict:
+                  jobs: int | None = None, frames: int = 1) -> dict:
     """Run the suite (module docstring) and write its report: {"rig", "device", "checks", "samples" (one result
     per name, in order), "report" (its folder), "passed"}."""
     import multiprocessing as mp
@@ -200,7 +209,7 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
     names = list(names or SUITE)
     rig_obj = twin.load_rig(rig)
     checks, _ = _self_checks(rig_obj, device)
-    out = Path(output) if output else DEFAULT_ROOT / f"suite_{rig_obj.name}_seed{seed}"
+    out = Path(output) if output else DEFAULT_ROOT / f"suite_{rig_obj.name}_seed{seed}{_x(frames)}"
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(names)))
     if str(device).startswith("cuda"):
         jobs = 1  # one GPU: the samples queue on it
@@ -209,7 +218,7 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
     t0 = time.perf_counter()
     # spawn, not fork: each worker initialises its own Warp and torch
     with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"), initializer=_one_thread) as pool:
-        futures = {pool.submit(_suite_member, rig, s, device, str(out / _sample_name(s)), resolution, seed): s
+        futures = {pool.submit(_suite_member, rig, s, device, str(out / _sample_name(s)), resolution, seed, frames): s
                    for s in names}
         for f in as_completed(futures):
             r = f.result()
@@ -225,10 +234,10 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
 
 
 def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
-              jobs: int | None = None, as_json=False) -> int:
+              jobs: int | None = None, as_json=False, frames: int = 1) -> int:
     """`hemicube validate --suite [NAMES]` (module docstring). Exit code 0 when every check and every
     threshold of every sample passes."""
-    res = suite_results(names, rig, device, output, resolution, seed, jobs)
+    res = suite_results(names, rig, device, output, resolution, seed, jobs, frames)
     checks, ordered, report, ok = res["checks"], res["samples"], res["report"], res["passed"]
     names = [r["sample"] for r in ordered]
     if as_json:

@@ -123,3 +123,27 @@ def test_capture_errors(tmp_path):
     with pytest.raises(ValueError):
         capture(rig, "no_such_sample", tmp_path / "y", progress=False)
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_frames_per_exposure(run_a, tmp_path):
+    """`hemicube capture --frames 2`: every exposure of each photo's bracket taken twice (the HDR merge averages them;
+    tests/test_hdr.py checks the statistics): the same metered bracket as one frame's, each exposure twice in a row,
+    each frame its own file and its own noise; the header says so, so a folder of one frame an exposure refuses it as
+    another capture; counts that the frame streams cannot hold are refused before a folder is made."""
+    out = tmp_path / "x2"
+    assert hemicube.cli.main(ARGS + ["--frames", "2", "-o", str(out)]) == 0
+    m, m1 = _manifest(out), _manifest(run_a)
+    assert m["frames_per_exposure"] == 2 and "frames_per_exposure" not in m1 and verify(out) == []
+    for stem in ("img00000_cam00", "img00070_cam00", "img00129_cam01"):
+        rec, rec1 = m["photos"][stem], m1["photos"][stem]
+        assert rec["exposures_s"] == [t for t in rec1["exposures_s"] for _ in range(2)]
+        raws = [f for f in rec["files"] if f.startswith("raw/")]
+        assert len(raws) == 6 and len(rec["files"]) == len(rec1["files"]) + 3 and len(set(rec["frames"])) == 6
+        first, second = ((out / f).read_bytes() for f in raws[:2])
+        assert first != second  # two frames of one exposure: two noise draws
+    with pytest.raises(CaptureError, match="different capture"):
+        capture(twin.load_rig("mini"), "ramps", out, seed=1, progress=False)
+    for bad in (0, 6, 2.0):
+        with pytest.raises(CaptureError, match=r"frames per exposure must be an integer in \[1, 5\]"):
+            capture(twin.load_rig("mini"), "ramps", tmp_path / "bad", seed=1, progress=False, frames=bad)
+    assert not (tmp_path / "bad").exists()

@@ -120,7 +120,7 @@ def cmd_capture(args) -> int:
     devices = {k: v for k, v in devices.items() if v is not None}  # the simulator refuses any
     out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
                   resolution=args.resolution, learned=learned, progress=not args.no_progress, devices=devices,
-                  truth=_rig_arg(args.truth) if args.truth else None)
+                  truth=_rig_arg(args.truth) if args.truth else None, frames=args.frames)
     bad = verify(out)
     if bad:
         print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)
@@ -241,6 +241,8 @@ def register(sub) -> None:
                    "(default: %(default)s)")
     s.add_argument("--resolution", type=int, default=128, help="texels per side of a built-in sample's maps "
                    "(default: %(default)s)")
+    s.add_argument("--frames", type=int, default=1, help="frames taken of every exposure and averaged by the HDR "
+                   "merge, against the photos' noise (default: %(default)s)")
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
     s.add_argument("--patterns", help="pattern file with the learned frames, K (+, -) pairs (a `hemicube train` "
                    "run's patterns.npz; default: the rig's own 64, else a seeded placeholder)")

@@ -11,8 +11,9 @@ order shifts: learned 0..F-1, lines F..F+63, then bottom, uniform, empty bottom 
 records which pattern each photo showed, so `indices_of(session)` reads its layout back. K = 32 is the
 reference's layout (`REFERENCE_INDICES`).
 
-Each photo is an exposure bracket of BRACKET raw frames, BRACKET_RATIO apart, merged to linear HDR
-(twin.camera.hdr). The learned frames default to the patterns a rig carries as data (DEFAULT_PATTERNS: the
+Each photo is an exposure bracket of BRACKET exposures, BRACKET_RATIO apart, each taken `frames` times (1 by
+default; `bracket_frames`), merged to linear HDR (twin.camera.hdr: repeated frames of one exposure are averaged by
+its inverse-variance weights, so N frames cut the temporal noise by sqrt(N)). The learned frames default to the patterns a rig carries as data (DEFAULT_PATTERNS: the
 shipped network's for the built-in mini rig, written there by reconstruction.pretrained), else a seeded
 placeholder; `twin` never asks the network for them.
 """
@@ -27,8 +28,10 @@ from twin.capture.pattern_sets import NUM_LINEAR_LIGHTS
 from twin.capture.patterns import load_patterns
 from twin.rig.builtin import serves_for
 
-BRACKET = 3  # raw frames per photo
+BRACKET = 3  # exposures per photo
 BRACKET_RATIO = 8.0
+# frames a photo may take in all: frame_id gives each (photo, camera) 16 streams of sensor noise,
+MAX_FRAMES_PER_PHOTO = 16  # and the HDR merge takes 16 frames at most (twin.camera.hdr.MAX_FRAMES)
 EXPOSURE_LIMITS_S = (20e-6, 1.0)  # the camera's exposure range used by the plan (a2A5328-15ucPRO: 20 us up)
 # Exposures are planned in whole microseconds, the unit cameras take them in (ExposureTime), so that a camera
 # (pylon's emulator included) applies exactly what was planned; the HDR merge uses what the camera reports.
@@ -151,6 +154,20 @@ def bracket_exposures(max_radiance: float, sensor) -> list[float]:
     ts = choose_bracket(max(max_radiance, 1e-12), sensor, n=BRACKET, ratio=BRACKET_RATIO)
     return [round(min(max(t, EXPOSURE_LIMITS_S[0]), EXPOSURE_LIMITS_S[1]) * EXPOSURE_STEPS_PER_S)
             / EXPOSURE_STEPS_PER_S for t in ts]
+
+
+def bracket_frames(exposures: list[float], frames: int) -> list[float]:
+    """The exposures a photo's raw frames take: each of the bracket's `frames` times in a row (frame averaging,
+    issue #14: the photos' noise is what limits a weak lobe; docs/accuracy.md)."""
+    check_frames(frames)
+    return [t for t in exposures for _ in range(frames)]
+
+
+def check_frames(frames) -> int:
+    if not isinstance(frames, int) or isinstance(frames, bool) or not 1 <= frames <= MAX_FRAMES_PER_PHOTO // BRACKET:
+        raise CaptureError(f"frames per exposure must be an integer in [1, {MAX_FRAMES_PER_PHOTO // BRACKET}] "
+                           f"({BRACKET} exposures a photo, {MAX_FRAMES_PER_PHOTO} frames at most), got {frames!r}")
+    return frames
 
 
 def frame_id(photo: Photo, j: int) -> int:

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.capture.plan import (BRACKET, BRACKET_RATIO, CaptureError, bracket_exposures, build_patterns, frame_id,
-                               paper_plan)
+from twin.capture.plan import (BRACKET, BRACKET_RATIO, CaptureError, bracket_exposures, bracket_frames, build_patterns,
+                               check_frames, frame_id, paper_plan)
 from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession
 
 WRITERS = max(1, min(8, os.cpu_count() or 1))
@@ -70,10 +70,11 @@ def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict
     return open_named(backend, rig, maps, seed=seed, device=device, **devices)
 
 
-def photos(rig, sims: dict, patterns, todo, device: str, stage=None):
-    """Take the photos `todo` (plan entries): yields (photo, raws (n, H, W) uint16 Warp array, HDR merge
-    (twin.camera.hdr.merge_hdr_device's dict), record), all on `device`. `stage(name)`, when given, is a
-    context manager around each stage ("render", "sensor", "hdr"): the bench's timer."""
+def photos(rig, sims: dict, patterns, todo, device: str, stage=None, frames: int = 1):
+    """Take the photos `todo` (plan entries), each exposure of the bracket `frames` times: yields (photo, raws
+    (n, H, W) uint16 Warp array, HDR merge (twin.camera.hdr.merge_hdr_device's dict), record), all on `device`.
+    `stage(name)`, when given, is a context manager around each stage ("render", "sensor", "hdr"): the bench's
+    timer."""
     import warp as wp
 
     from twin.camera.hdr import merge_hdr_device
@@ -93,14 +94,14 @@ def photos(rig, sims: dict, patterns, todo, device: str, stage=None):
         cam = rig.camera(photo.camera)
         with stage("sensor"):
             shown = sim.show(patterns.levels[index[photo.pattern]])
-            exposures = bracket_exposures(sim.meter(photo.camera), cam.sensor)
-            frames = [frame_id(photo, j) for j in range(len(exposures))]
+            exposures = bracket_frames(bracket_exposures(sim.meter(photo.camera), cam.sensor), frames)
+            ids = [frame_id(photo, j) for j in range(len(exposures))]
             raws = wp.empty((len(exposures), cam.height, cam.width), dtype=wp.uint16, device=device)
-            exposures, grabbed = sim.grab_bracket(photo.camera, exposures, frames, raws)  # as the camera applied
+            exposures, grabbed = sim.grab_bracket(photo.camera, exposures, ids, raws)  # as the camera applied
         with stage("hdr"):
             hdr = merge_hdr_device(raws, exposures, cam.sensor)
             record = {"pattern": photo.pattern, "camera": photo.camera, "sample": photo.sample,
-                      "exposures_s": exposures, "frames": frames,
+                      "exposures_s": exposures, "frames": ids,
                       "saturated_pixels": int(hdr["saturated_count"].numpy()[0]), **shown, **grabbed}
         yield photo, raws, hdr, record
 
@@ -109,7 +110,7 @@ SAMPLE_RESOLUTION = 128  # texels per side of a built-in sample's maps when a ca
 
 
 def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", resolution: int = SAMPLE_RESOLUTION,
-                   learned=None, cameras: str | None = None, truth=None) -> tuple[dict, object, list]:
+                   learned=None, cameras: str | None = None, truth=None, frames: int = 1) -> tuple[dict, object, list]:
     """(the manifest header, the pattern set, the plan) of the capture these arguments describe: what a capture
     folder must hold to be resumed (or, finished, to be reused) for them."""
     patterns = build_patterns(rig, learned)
@@ -123,13 +124,16 @@ def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", res
         header["cameras"] = cameras
     if truth is not None:  # rendered with another rig than the one recorded: say which
         header["simulated_with"] = {"rig": truth.name, "rig_digest": truth.digest()}
+    if check_frames(frames) != 1:  # absent: one frame an exposure (so the folders made before this stay resumable)
+        header["frames_per_exposure"] = frames
     return header, patterns, plan
 
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
             resolution: int = SAMPLE_RESOLUTION, learned=None, progress: bool = True, devices: dict | None = None,
-            truth=None) -> Path:
-    """Run the plan into `output` (resuming a killed run there). Returns the folder. `devices` are the
+            truth=None, frames: int = 1) -> Path:
+    """Run the plan into `output` (resuming a killed run there), each exposure taken `frames` times (the HDR merge
+    averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices` are the
     hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
     (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
     calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must be
@@ -150,7 +154,8 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     # the twin renders (and so knows the ground truth) unless real cameras take the photos
     maps = load_sample(sample, resolution=resolution) if devices.get("cameras") != "basler" else None
     header, patterns, plan = capture_header(rig, sample, seed=seed, backend=backend, resolution=resolution,
-                                            learned=learned, cameras=devices.get("cameras"), truth=truth)
+                                            learned=learned, cameras=devices.get("cameras"), truth=truth,
+                                            frames=frames)
     with open_backends(rig, maps, backend, seed, device, devices, truth) as sims, \
             CaptureSession.create(output, header) as session:
         session.write_setup(patterns, rig, maps)
@@ -162,7 +167,7 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
         host = HostCopies()
         slots = [None] * (2 * WRITERS)  # a slot's buffers are reused once its photo is written
         with ThreadPoolExecutor(WRITERS) as pool:
-            for n, (photo, raws, hdr, record) in enumerate(photos(rig, sims, patterns, todo, device)):
+            for n, (photo, raws, hdr, record) in enumerate(photos(rig, sims, patterns, todo, device, frames=frames)):
                 k = n % len(slots)
                 if slots[k] is not None:
                     slots[k].result()

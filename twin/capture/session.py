@@ -62,8 +62,10 @@ def _pixel_texel_file(camera_index: int) -> str:
 
 
 def _differing(old: dict, header: dict) -> list[str]:
-    """The keys of `header` whose value a manifest `old` does not share."""
-    return [k for k in header if old.get(k) != header[k]]
+    """The header keys whose value a manifest `old` does not share: those of `header`, and the optional ones
+    (`simulated_with`, `cameras`, `frames_per_exposure`: absent unless set) that only `old` has."""
+    keys = list(header) + [k for k in old if k not in header and k not in ("photos", "files")]
+    return [k for k in keys if old.get(k) != header.get(k)]
 
 
 def _read_manifest(directory: Path) -> dict:
