@@ -129,10 +129,12 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
     would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
     import twin
     from reconstruction.metrics import format_table
+    from twin.capture.plan import check_frames
     from twin.capture.runner import SAMPLE_RESOLUTION
     from twin.materials.samples import load_sample
 
     rig_obj = twin.load_rig(rig)
+    check_frames(frames)  # before the checks and the folder: a bad count is one line, nothing written
     if device == "cpu" and not anyway:
         maps = load_sample(sample, resolution=SAMPLE_RESOLUTION)
         if capture_evaluations(rig_obj, maps) > ESTIMATE_ABOVE and \
@@ -204,10 +206,12 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     import twin
+    from twin.capture.plan import check_frames
     from twin.materials.samples import SUITE
 
     names = list(names or SUITE)
     rig_obj = twin.load_rig(rig)
+    check_frames(frames)  # one line, not an error per sample
     checks, _ = _self_checks(rig_obj, device)
     out = Path(output) if output else DEFAULT_ROOT / f"suite_{rig_obj.name}_seed{seed}{_x(frames)}"
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(names)))

@@ -147,3 +147,12 @@ def test_frames_per_exposure(run_a, tmp_path):
         with pytest.raises(CaptureError, match=r"frames per exposure must be an integer in \[1, 5\]"):
             capture(twin.load_rig("mini"), "ramps", tmp_path / "bad", seed=1, progress=False, frames=bad)
     assert not (tmp_path / "bad").exists()
+
+
+def test_validate_refuses_a_bad_frame_count_in_one_line(tmp_path, capsys):
+    """`hemicube validate --frames 0` (one sample, or the suite): one line, before any check runs or folder is made."""
+    for args in (["validate"], ["validate", "--suite", "satin"]):
+        assert hemicube.cli.main(args + ["--frames", "0", "-o", str(tmp_path / "v")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "frames per exposure must be an integer in [1, 5]" in err
+    assert not (tmp_path / "v").exists()

@@ -61,10 +61,13 @@ def _pixel_texel_file(camera_index: int) -> str:
     return f"ground_truth/pixel_texel_cam{camera_index:02d}.npy"
 
 
+BODY = ("photos", "files")  # a manifest's keys besides its header's (CaptureSession.save)
+
+
 def _differing(old: dict, header: dict) -> list[str]:
     """The header keys whose value a manifest `old` does not share: those of `header`, and the optional ones
     (`simulated_with`, `cameras`, `frames_per_exposure`: absent unless set) that only `old` has."""
-    keys = list(header) + [k for k in old if k not in header and k not in ("photos", "files")]
+    keys = list(header) + [k for k in old if k not in header and k not in BODY]
     return [k for k in keys if old.get(k) != header.get(k)]
 
 
@@ -362,7 +365,7 @@ class CaptureSession:
             self.save()
 
     def save(self) -> None:
-        doc = {**self.header, "photos": self.photos, "files": self.files}
+        doc = {**self.header, **dict(zip(BODY, (self.photos, self.files)))}
         write_bytes_atomic(self.dir / MANIFEST, json.dumps(doc, sort_keys=True, separators=(",", ":")).encode())
 
 

@@ -152,28 +152,26 @@ class Camera:
     def undistort_reference(self, xy_d: np.ndarray, iterations: int = 20) -> np.ndarray:
         """`undistort` as it was before the blocks: every point through every iteration. The oracle of
         tests/test_camera.py and the same-run baseline of docs/bench/undistort_blocks_2026-11-27.py."""
-        k1, k2, p1, p2, k3 = self.dist
         xy = np.array(xy_d, dtype=np.float64)
         for _ in range(iterations):
-            x, y = xy[..., 0], xy[..., 1]
-            r2 = x * x + y * y
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            xy = np.stack([(xy_d[..., 0] - dx) / radial, (xy_d[..., 1] - dy) / radial], axis=-1)
+            xy = np.stack(self._undistort_step(xy[..., 0], xy[..., 1], xy_d[..., 0], xy_d[..., 1]), axis=-1)
         return xy
 
-    def _undistort_block(self, xd: np.ndarray, yd: np.ndarray, iterations: int) -> np.ndarray:
+    def _undistort_step(self, x, y, xd, yd):
+        """One fixed-point step of `undistort`: the point whose distortion of (x, y) moved to (xd, yd)."""
         k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return (xd - dx) / radial, (yd - dy) / radial
+
+    def _undistort_block(self, xd: np.ndarray, yd: np.ndarray, iterations: int) -> np.ndarray:
         out = np.stack([xd, yd], axis=-1)
         live = np.arange(xd.size)  # the points still iterated: x, y, their targets xd, yd
         x, y = xd, yd
         for _ in range(iterations):
-            r2 = x * x + y * y
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            xn, yn = (xd - dx) / radial, (yd - dy) / radial
+            xn, yn = self._undistort_step(x, y, xd, yd)
             moving = (xn != x) | (yn != y)
             x, y = xn, yn
             if moving.sum() < 0.75 * live.size:  # drop the settled points (a copy pays only when many have)
