@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+from twin.capture.plan import DEFAULT_FRAMES
+
 DEFAULT_ROOT = Path("hemicube-validate")
 
 
@@ -34,7 +36,8 @@ def _sample_name(sample: str) -> str:
 
 
 def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int | None, seed: int,
-               progress: bool, network: str = "pretrained", learned=None, frames: int = 1) -> tuple[dict, list, dict]:
+               progress: bool, network: str = "pretrained", learned=None,
+               frames: int = DEFAULT_FRAMES) -> tuple[dict, list, dict]:
     """Simulate a capture, reconstruct it, score it: (metrics, threshold rows, report paths). `learned` (a
     PatternSet of 2K frames) and `network` (a `hemicube train` run folder) capture and decode with another
     network's patterns (a capture design, hemicube.design) instead of the rig's own; `frames`: each exposure
@@ -123,7 +126,7 @@ def cpu_capture_estimate(rig_obj, maps, rows: int = 1) -> dict:
 
 def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, output=None,
                    resolution: int | None = None, seed: int = 1, progress: bool = True, anyway: bool = False,
-                   frames: int = 1) -> int:
+                   frames: int = DEFAULT_FRAMES) -> int:
     """The main job: rig and forward-model checks, then capture -> reconstruct -> score (see the module
     docstring). Exit code 0 when every check and every threshold passes. On the CPU, a rig whose capture
     would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
@@ -179,11 +182,13 @@ def _one_thread() -> None:
 
 
 def _x(frames: int) -> str:
-    """The default folders' mark of frames an exposure other than one (a folder holds one capture)."""
+    """The default folders' mark of frames an exposure other than one (a folder holds one capture, and the folders
+    made before frame averaging hold one-frame captures)."""
     return "" if frames == 1 else f"_x{frames}"
 
 
-def _suite_member(rig: str, sample: str, device: str, output: str, resolution, seed: int, frames: int = 1) -> dict:
+def _suite_member(rig: str, sample: str, device: str, output: str, resolution, seed: int,
+                  frames: int = DEFAULT_FRAMES) -> dict:
     """One suite sample in its own process: capture -> reconstruct -> score into `output`."""
     import twin
 
@@ -199,7 +204,7 @@ def _suite_member(rig: str, sample: str, device: str, output: str, resolution, s
 
 
 def suite_results(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
-                  jobs: int | None = None, frames: int = 1) -> dict:
+                  jobs: int | None = None, frames: int = DEFAULT_FRAMES) -> dict:
     """Run the suite (module docstring) and write its report: {"rig", "device", "checks", "samples" (one result
     per name, in order), "report" (its folder), "passed"}."""
     import multiprocessing as mp
@@ -238,7 +243,7 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
 
 
 def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
-              jobs: int | None = None, as_json=False, frames: int = 1) -> int:
+              jobs: int | None = None, as_json=False, frames: int = DEFAULT_FRAMES) -> int:
     """`hemicube validate --suite [NAMES]` (module docstring). Exit code 0 when every check and every
     threshold of every sample passes."""
     res = suite_results(names, rig, device, output, resolution, seed, jobs, frames)

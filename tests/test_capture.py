@@ -20,7 +20,7 @@ import pytest
 
 import twin
 import hemicube.cli
-from twin.capture.plan import CaptureError
+from twin.capture.plan import DEFAULT_FRAMES, CaptureError
 from twin.capture.runner import capture
 from twin.capture.session import verify
 
@@ -46,6 +46,7 @@ def test_session_folder(run_a):
     m = _manifest(run_a)
     rig = twin.load_rig("mini")
     assert m["rig_digest"] == rig.digest() and m["seed"] == 1 and m["backend"] == "sim"
+    assert m["frames_per_exposure"] == DEFAULT_FRAMES == 4
     assert verify(run_a) == []
     # 64 learned x 2 views + 64 linear lights + bottom + 2 uniform + empty-board bottom
     assert len(m["plan"]) == 128 + 64 + 1 + 2 + 1 == len(m["photos"])
@@ -56,7 +57,7 @@ def test_session_folder(run_a):
     hdr = read_rgb_exr(Path(run_a) / "img00129_cam00.exr")  # uniform light
     assert hdr.shape == (cam.height, cam.width, 3) and np.all(np.isfinite(hdr)) and hdr.max() > 0
     rec = m["photos"]["img00129_cam00"]
-    assert len(rec["exposures_s"]) == 3 and len(set(rec["exposures_s"])) == 3
+    assert len(rec["exposures_s"]) == 3 * DEFAULT_FRAMES and len(set(rec["exposures_s"])) == 3
     raw = unpack_bayer_rg12p((Path(run_a) / rec["files"][0]).read_bytes(), cam.height, cam.width)
     assert raw.dtype == np.uint16 and raw.max() <= 4095 and raw.max() > raw.min()
     gt = np.load(Path(run_a) / "ground_truth" / "pixel_texel_cam00.npy")
@@ -101,7 +102,7 @@ def test_kill_and_resume_is_byte_identical(run_a, tmp_path):
     a = _manifest(run_a)["files"]
     raw_a = {k: v for k, v in a.items() if k.startswith("raw/")}
     raw_b = {k: v for k, v in after["files"].items() if k.startswith("raw/")}
-    assert raw_a == raw_b and len(raw_a) == 196 * 3  # same seed: identical raw bytes (sha256)
+    assert raw_a == raw_b and len(raw_a) == 196 * 3 * DEFAULT_FRAMES  # same seed: identical raw bytes (sha256)
 
 
 def test_refuses_other_capture_and_repairs_corruption(run_a, tmp_path):
@@ -126,20 +127,23 @@ def test_capture_errors(tmp_path):
 
 
 def test_frames_per_exposure(run_a, tmp_path):
-    """`hemicube capture --frames 2`: every exposure of each photo's bracket taken twice (the HDR merge averages them;
-    tests/test_hdr.py checks the statistics): the same metered bracket as one frame's, each exposure twice in a row,
-    each frame its own file and its own noise; the header says so, so a folder of one frame an exposure refuses it as
-    another capture; counts that the frame streams cannot hold are refused before a folder is made."""
-    out = tmp_path / "x2"
-    assert hemicube.cli.main(ARGS + ["--frames", "2", "-o", str(out)]) == 0
-    m, m1 = _manifest(out), _manifest(run_a)
-    assert m["frames_per_exposure"] == 2 and "frames_per_exposure" not in m1 and verify(out) == []
+    """The default capture takes every exposure of each photo's bracket DEFAULT_FRAMES times (the HDR merge averages
+    them; tests/test_hdr.py checks the statistics), against `hemicube capture --frames 1`: the same metered bracket,
+    each exposure repeated in a row, each frame its own file and its own noise. A one-frame folder's header lacks the
+    key (as every folder made before frame averaging), so it and the default's refuse each other as another capture;
+    counts that the frame streams cannot hold are refused before a folder is made."""
+    out = tmp_path / "x1"
+    assert hemicube.cli.main(ARGS + ["--frames", "1", "-o", str(out)]) == 0
+    m, m1 = _manifest(run_a), _manifest(out)
+    assert m["frames_per_exposure"] == DEFAULT_FRAMES and "frames_per_exposure" not in m1 and verify(out) == []
+    n = DEFAULT_FRAMES
     for stem in ("img00000_cam00", "img00070_cam00", "img00129_cam01"):
         rec, rec1 = m["photos"][stem], m1["photos"][stem]
-        assert rec["exposures_s"] == [t for t in rec1["exposures_s"] for _ in range(2)]
+        assert rec["exposures_s"] == [t for t in rec1["exposures_s"] for _ in range(n)]
         raws = [f for f in rec["files"] if f.startswith("raw/")]
-        assert len(raws) == 6 and len(rec["files"]) == len(rec1["files"]) + 3 and len(set(rec["frames"])) == 6
-        first, second = ((out / f).read_bytes() for f in raws[:2])
+        assert len(raws) == 3 * n and len(rec["files"]) == len(rec1["files"]) + 3 * (n - 1)
+        assert len(set(rec["frames"])) == 3 * n
+        first, second = ((run_a / f).read_bytes() for f in raws[:2])
         assert first != second  # two frames of one exposure: two noise draws
     with pytest.raises(CaptureError, match="different capture"):
         capture(twin.load_rig("mini"), "ramps", out, seed=1, progress=False)

@@ -9,7 +9,7 @@ import twin
 from twin.camera.hdr import merge_hdr_numpy
 from twin.camera.sensor import dn_max, effective_gain
 from twin.capture import pattern_sets
-from twin.capture.plan import bracket_exposures
+from twin.capture.plan import DEFAULT_FRAMES, bracket_exposures, bracket_frames
 from twin.design.noise import (demultiplexing_gain, hadamard_gain_closed_form, measurement_noise,
                                olat_functional_gain)
 from twin.rig.camera import SensorParams
@@ -205,7 +205,8 @@ def test_single_led_pattern_gain_is_one(rig):
     out = measurement_noise(rig, P, T, SENSOR)
     np.testing.assert_array_equal(out["signal"][1], -T[:, 100])
     assert (out["exposures_s"][0, 1] == 0).all() and (out["exposures_s"][1, 0] == 0).all()  # dark: not taken
-    assert out["exposures_s"][0, 0].tolist() == bracket_exposures(T[:, 7].max(), SENSOR)
+    plan = bracket_frames(bracket_exposures(T[:, 7].max(), SENSOR), DEFAULT_FRAMES)
+    assert out["exposures_s"][0, 0].tolist() == plan
     assert not out["saturated"].any() and (out["snr"] > 10).all()
 
 
@@ -241,11 +242,12 @@ def _raw(B, t, sensor, rng, shape):
     return np.clip(dn, 0, dn_max(sensor)).astype(np.uint16)
 
 
-def test_sigma_matches_monte_carlo(rig):
+@pytest.mark.parametrize("frames", [1, 4])
+def test_sigma_matches_monte_carlo(rig, frames):
     """y = B(W+) - B(W-) drawn 20,000 times through a numpy sensor and twin's HDR merge (merge_hdr_numpy) at a
-    fixed bracket. The photos' radiances put every texel in another regime: read-noise dominated (<= 11 e- in
-    the longest frame), all three frames used with shot noise dominating the longest, two frames, the shortest
-    only (each frame's use decided > 15 sd from the merge's threshold).
+    fixed bracket, each exposure taken `frames` times. The photos' radiances put every texel in another regime:
+    read-noise dominated (<= 11 e- in the longest frame), all three exposures used with shot noise dominating the
+    longest, two, the shortest only (each frame's use decided > 15 sd from the merge's threshold).
     The standard error of a standard deviation from N = 20,000 draws is ~ 1 / sqrt(2 N) = 0.5%; the tolerance
     of 3% is 6 standard errors."""
     ts = [1e-4, 8e-4, 6.4e-3]
@@ -255,16 +257,17 @@ def test_sigma_matches_monte_carlo(rig):
     T = np.zeros((4, rig.num_leds))
     T[:, leds] = [[0.002, 0.002, 0.008, 0.008], [0.2, 0.2, 4.0, 4.0], [30.0, 20.0, 16.0, 16.0],
                   [150.0, 100.0, 1.6, 1.6]]  # B+: 0.003, 0.3, 40, 200; B-: 0.01, 5, 20, 2
-    out = measurement_noise(rig, w[None], T, SENSOR, exposures=ts)
-    assert out["exposures_s"].shape == (1, 2, 3) and (out["exposures_s"] == ts).all()
+    out = measurement_noise(rig, w[None], T, SENSOR, exposures=ts, frames=frames)
+    taken = bracket_frames(ts, frames)
+    assert out["exposures_s"].shape == (1, 2, 3 * frames) and (out["exposures_s"] == taken).all()
     assert not out["saturated"][0]
     rng = np.random.default_rng(1234)
     shape = (100, 200)  # 20,000 independent photosites = draws
     rel = []
     for m in range(4):
         B = [T[m] @ np.clip(w, 0, None), T[m] @ np.clip(-w, 0, None)]
-        merged = [merge_hdr_numpy([_raw(b, t, SENSOR, rng, shape) for t in ts], ts, SENSOR).mosaic.astype(np.float64)
-                  for b in B]
+        raws = [[_raw(b, t, SENSOR, rng, shape) for t in taken] for b in B]
+        merged = [merge_hdr_numpy(r, taken, SENSOR).mosaic.astype(np.float64) for r in raws]
         y = (merged[0] - merged[1]).ravel()
         assert abs(y.mean() - out["signal"][0, m]) < 5 * out["sigma"][0, m] / np.sqrt(y.size)
         rel.append(y.std(ddof=1) / out["sigma"][0, m] - 1)

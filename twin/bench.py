@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.capture.plan import DEFAULT_FRAMES
+
 
 def random_points(P: int, seed: int = 0, half_size: float = 75.0, plane_z: float = -122.0):
     """Seeded random surface points on the sample plane with the training distribution's ranges."""
@@ -360,7 +362,7 @@ CAPTURE_RENDER_ATOL = 1e-6  # of the image's largest value
 
 
 def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, seed=0, scale=1.0,
-                  check_rows=8, output=None):
+                  check_rows=8, output=None, frames=DEFAULT_FRAMES):
     """Seconds for the whole capture plan's simulation on `device` (every photo of both views; no
     extrapolation), by stage, with the production code (twin.capture.runner.photos): pixel tracing, the
     render of every pattern, the sensor (exposure bracket and raw frames), the HDR merge, and the download
@@ -378,7 +380,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     from twin.camera.hdr import merge_hdr_numpy
     from twin.camera.imaging import render_device, render_reference, trace_pixels, trace_pixels_numpy
     from twin.camera.sensor import raw_frame, sensor_consts
-    from twin.capture.plan import build_patterns, paper_plan
+    from twin.capture.plan import build_patterns, check_frames, paper_plan
     from twin.capture.runner import HostCopies, open_backends, photos
     from twin.materials.samples import load_sample
     from twin.optics.inputs import check_device
@@ -387,6 +389,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     from dataclasses import replace
 
     device = check_device(device)
+    frames = check_frames(frames)
     rig = twin.load_rig(rig_name)
     if scale != 1.0:
         rig = replace(rig, cameras={n: c.resized(scale) for n, c in rig.cameras.items()})
@@ -401,7 +404,8 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     dev = wp.get_device(device)
     res = {"benchmark": "capture", "rig": rig.name, "device": str(dev),
            "device_name": dev.name if dev.is_cuda else platform.processor() or "cpu", "sample": sample,
-           "sample_resolution": resolution, "camera_scale": scale, "photos": len(plan), "warp_version": wp.__version__,
+           "sample_resolution": resolution, "camera_scale": scale, "photos": len(plan), "frames_per_exposure": frames,
+           "warp_version": wp.__version__,
            "cameras": {n: [c.width, c.height] for n, c in rig.cameras.items()}}
     seconds = defaultdict(float)
 
@@ -432,7 +436,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     with open_backends(rig, maps, "sim", seed, device) as sims:
         with stage("trace"):
             surfaces = {key: sims[key[0]].surfaces(key[1]) for key in need}
-        for photo, raws, hdr, record in photos(rig, sims, patterns, plan, device, stage):
+        for photo, raws, hdr, record in photos(rig, sims, patterns, plan, device, stage, frames=frames):
             with stage("download"):  # what `hemicube capture` hands to its file writers
                 copies = host(0, raws, hdr["radiance"])
             if checked is None:
@@ -464,7 +468,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
         from twin.capture.runner import capture
 
         t0 = time.perf_counter()
-        capture(rig, sample, output, seed=seed, device=device, resolution=resolution, progress=False)
+        capture(rig, sample, output, seed=seed, device=device, resolution=resolution, progress=False, frames=frames)
         res["total_s_files_written"] = time.perf_counter() - t0
         res["output_bytes"] = sum(f.stat().st_size for f in Path(output).rglob("*") if f.is_file())
     return finish_checks(res, checks)

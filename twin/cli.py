@@ -172,7 +172,7 @@ def cmd_bench(args) -> int:
                               not args.no_compile)
     else:
         res = bench_capture(args.rig, args.device, args.sample, args.resolution, args.seed, args.scale,
-                            output=args.output)
+                            output=args.output, frames=args.frames)
     print(json.dumps(res, indent=2))
     return bench_exit(res)
 
@@ -188,6 +188,8 @@ def _pattern_image_args(s) -> None:
 
 def register(sub) -> None:
     """Add the twin's sub-commands to the front's parser."""
+    from twin.capture.plan import DEFAULT_FRAMES
+
     rig = sub.add_parser("rig", help="inspect, import and export rigs").add_subparsers(dest="rig_command",
                                                                                        required=True)
     s = rig.add_parser("info", help="LED counts per board, bounding box, cameras")
@@ -241,8 +243,8 @@ def register(sub) -> None:
                    "(default: %(default)s)")
     s.add_argument("--resolution", type=int, default=128, help="texels per side of a built-in sample's maps "
                    "(default: %(default)s)")
-    s.add_argument("--frames", type=int, default=1, help="frames taken of every exposure and averaged by the HDR "
-                   "merge, against the photos' noise (default: %(default)s)")
+    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help="frames taken of every exposure and averaged by "
+                   "the HDR merge, against the photos' noise (default: %(default)s)")
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
     s.add_argument("--patterns", help="pattern file with the learned frames, K (+, -) pairs (a `hemicube train` "
                    "run's patterns.npz; default: the rig's own 64, else a seeded placeholder)")
@@ -287,6 +289,8 @@ def register(sub) -> None:
 
 def register_bench(bench) -> None:
     """Add the twin's benchmarks to the front's `bench` group."""
+    from twin.capture.plan import DEFAULT_FRAMES
+
     s = bench.add_parser("lumitexel", help="LED-BRDF evaluations per second vs a plain torch baseline")
     s.add_argument("--rig", default="paper", help=RIG_HELP)
     s.add_argument("--device", default="cpu", help="Warp/torch device: cpu, cuda (default: %(default)s)")
@@ -305,6 +309,8 @@ def register_bench(bench) -> None:
     s.add_argument("--seed", type=int, default=0, help="the capture's seed (default: %(default)s)")
     s.add_argument("--scale", type=float, default=1.0, help="resize the cameras by this factor, e.g. 0.5 for a "
                    "quick run (default: %(default)s)")
+    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help="frames taken of every exposure "
+                   "(default: %(default)s, the capture's)")
     s.add_argument("-o", "--output", help="also run `hemicube capture` into this folder, files written, and time it")
     s.set_defaults(func=cmd_bench)
 

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.capture.plan import (BRACKET, BRACKET_RATIO, CaptureError, bracket_exposures, bracket_frames, build_patterns,
-                               check_frames, frame_id, paper_plan)
+from twin.capture.plan import (BRACKET, BRACKET_RATIO, DEFAULT_FRAMES, CaptureError, bracket_exposures, bracket_frames,
+                               build_patterns, check_frames, frame_id, paper_plan)
 from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession
 
 WRITERS = max(1, min(8, os.cpu_count() or 1))
@@ -70,7 +70,7 @@ def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict
     return open_named(backend, rig, maps, seed=seed, device=device, **devices)
 
 
-def photos(rig, sims: dict, patterns, todo, device: str, stage=None, frames: int = 1):
+def photos(rig, sims: dict, patterns, todo, device: str, stage=None, frames: int = DEFAULT_FRAMES):
     """Take the photos `todo` (plan entries), each exposure of the bracket `frames` times: yields (photo, raws
     (n, H, W) uint16 Warp array, HDR merge (twin.camera.hdr.merge_hdr_device's dict), record), all on `device`.
     `stage(name)`, when given, is a context manager around each stage ("render", "sensor", "hdr"): the bench's
@@ -110,7 +110,8 @@ SAMPLE_RESOLUTION = 128  # texels per side of a built-in sample's maps when a ca
 
 
 def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", resolution: int = SAMPLE_RESOLUTION,
-                   learned=None, cameras: str | None = None, truth=None, frames: int = 1) -> tuple[dict, object, list]:
+                   learned=None, cameras: str | None = None, truth=None,
+                   frames: int = DEFAULT_FRAMES) -> tuple[dict, object, list]:
     """(the manifest header, the pattern set, the plan) of the capture these arguments describe: what a capture
     folder must hold to be resumed (or, finished, to be reused) for them."""
     patterns = build_patterns(rig, learned)
@@ -131,7 +132,7 @@ def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", res
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
             resolution: int = SAMPLE_RESOLUTION, learned=None, progress: bool = True, devices: dict | None = None,
-            truth=None, frames: int = 1) -> Path:
+            truth=None, frames: int = DEFAULT_FRAMES) -> Path:
     """Run the plan into `output` (resuming a killed run there), each exposure taken `frames` times (the HDR merge
     averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices` are the
     hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`

@@ -13,9 +13,10 @@ Multiplexing gain (sources)
     generalised least squares, the best linear unbiased estimate for frame variances Sigma).
 
 Photo noise (ours: the capture plan's photos, twin.capture.plan and twin.camera.hdr)
-    A photo of mean radiance B at a pixel is a bracket of exposures t_j (bracket_exposures: BRACKET frames
+    A photo of mean radiance B at a pixel is a bracket of exposures t_j (bracket_exposures: BRACKET exposures
     BRACKET_RATIO apart, the shortest putting the photo's brightest radiance at 80% of saturation, clamped
-    to EXPOSURE_LIMITS_S and rounded to microseconds), merged as twin.camera.hdr's merge does, with its noise
+    to EXPOSURE_LIMITS_S and rounded to microseconds), each taken `frames` times in a row (bracket_frames; the
+    plan's DEFAULT_FRAMES unless given), merged as twin.camera.hdr's merge does, frame by frame, with its noise
     model evaluated at the true radiance (the merge evaluates it at its pilot estimate of it):
         mean electrons  mu_j = B k t_j + dark t_j          (k = electrons_per_radiance_s)
         variance        v_j = mu_j + read_noise^2 + g^2 / 12   (shot incl. dark, read, ADC rounding; g e-/DN)
@@ -34,7 +35,7 @@ import numpy as np
 
 from twin.camera.hdr import EXCLUSION_Z, saturation_threshold_dn
 from twin.camera.sensor import effective_gain
-from twin.capture.plan import bracket_exposures
+from twin.capture.plan import DEFAULT_FRAMES, bracket_exposures, bracket_frames
 from twin.rig.camera import SensorParams
 
 
@@ -87,21 +88,24 @@ def demultiplexing_gain(W, source_signal_e, read_var_e2: float) -> np.ndarray:
     return np.sqrt((k2 + s) / var_demux)
 
 
-def measurement_noise(rig, patterns_signed, lumitexels, sensor: SensorParams, exposures="plan") -> dict:
+def measurement_noise(rig, patterns_signed, lumitexels, sensor: SensorParams, exposures="plan",
+                      frames: int = DEFAULT_FRAMES) -> dict:
     """Noise of the measurement y = B(W+) - B(W-) of each signed pattern at M reference texels.
 
     patterns_signed (K, L) in [-1, 1] over all rig LEDs (W+ = max(w, 0), W- = max(-w, 0)); lumitexels (M, L):
     the radiance one pixel sees from each texel per LED at full drive, so B(W) = sum_l W_l m_l. Each photo
     of a pair is a bracket merged to HDR (module docstring): exposures "plan" brackets each photo from its
     brightest radiance over the M texels (twin.capture.plan.bracket_exposures); a number (seconds) or a
-    sequence of them takes every photo at those fixed exposures. y's variance is the sum of its two photos'.
+    sequence of them takes every photo at those fixed exposures; either way each exposure is taken `frames`
+    times (module docstring). y's variance is the sum of its two photos'.
     Returns a dict of arrays:
         signal (K, M)        y (radiance)
         sigma (K, M)         its standard deviation; inf where a photo saturates in every frame
         snr (K, M)           |signal| / sigma (0 where sigma is inf)
         saturated (K,)       a photo's shortest exposure saturates at some texel (with the plan: the pattern
                              is too bright for EXPOSURE_LIMITS_S)
-        exposures_s (K, 2, T) the (+, -) photos' exposures; 0 for a frame with no LED lit (not taken)."""
+        exposures_s (K, 2, T) the (+, -) photos' raw frames' exposures (T = BRACKET x frames with the plan);
+                             0 for a photo with no LED lit (not taken)."""
     P = _check_patterns(rig, patterns_signed)
     T = _check_lumitexels(rig, lumitexels)
     _check_sensor(sensor)
@@ -109,7 +113,7 @@ def measurement_noise(rig, patterns_signed, lumitexels, sensor: SensorParams, ex
     Wpm = np.stack([np.clip(P, 0, None), np.clip(-P, 0, None)], axis=1)  # (K, 2, L)
     B = Wpm @ T.T  # (K, 2, M)
     lit = Wpm.any(axis=2)  # (K, 2): frames with some LED on are photographed
-    ts, var, sat = _photo_noise(B[lit], fixed, sensor)
+    ts, var, sat = _photo_noise(B[lit], fixed, sensor, frames)
     n_t = ts.shape[1]
     exposures_s = np.zeros(lit.shape + (n_t,))
     exposures_s[lit] = ts
@@ -125,7 +129,8 @@ def measurement_noise(rig, patterns_signed, lumitexels, sensor: SensorParams, ex
             "exposures_s": exposures_s}
 
 
-def olat_functional_gain(rig, patterns_signed, lumitexels, sensor: SensorParams, exposures="plan") -> np.ndarray:
+def olat_functional_gain(rig, patterns_signed, lumitexels, sensor: SensorParams, exposures="plan",
+                         frames: int = DEFAULT_FRAMES) -> np.ndarray:
     """Per (pattern k, texel m): sigma_OLAT / sigma_multiplexed, where sigma_multiplexed is measurement_noise's
     and sigma_OLAT the standard deviation of the same functional sum_l w_kl m_l assembled from one photo per
     lit LED (LED l alone at full drive, bracketed from its own brightest radiance over the texels with
@@ -135,9 +140,9 @@ def olat_functional_gain(rig, patterns_signed, lumitexels, sensor: SensorParams,
     both do. Arguments as for measurement_noise."""
     P = _check_patterns(rig, patterns_signed)
     T = _check_lumitexels(rig, lumitexels)
-    sigma_mux = measurement_noise(rig, P, T, sensor, exposures)["sigma"]
+    sigma_mux = measurement_noise(rig, P, T, sensor, exposures, frames)["sigma"]
     leds = np.flatnonzero((P != 0).any(axis=0))
-    _, var_led, _ = _photo_noise(T[:, leds].T, _check_exposures(exposures), sensor)  # (n_leds, M)
+    _, var_led, _ = _photo_noise(T[:, leds].T, _check_exposures(exposures), sensor, frames)  # (n_leds, M)
     w2 = P[:, leds] ** 2
     finite = np.isfinite(var_led)
     var_olat = w2 @ np.where(finite, var_led, 0.0)
@@ -146,13 +151,16 @@ def olat_functional_gain(rig, patterns_signed, lumitexels, sensor: SensorParams,
         return np.sqrt(var_olat) / sigma_mux
 
 
-def _photo_noise(B, fixed, sensor: SensorParams):
-    """Photos of radiance B (P, M) -> (exposures (P, T), merged variance (P, M) radiance^2, shortest frame
-    saturated (P, M)), with the plan's brackets (fixed None) or the fixed ascending exposures."""
+def _photo_noise(B, fixed, sensor: SensorParams, frames: int):
+    """Photos of radiance B (P, M) -> (raw frames' exposures (P, T), merged variance (P, M) radiance^2, shortest
+    frame saturated (P, M)), with the plan's brackets (fixed None) or the fixed ascending exposures, each taken
+    `frames` times in a row: the merge's order (shortest first, stable), so its exclusion rule counts the
+    repeats of an exposure among the frames used before."""
     if fixed is None:
-        ts = np.array([bracket_exposures(float(b.max(initial=0.0)), sensor) for b in B]).reshape(len(B), -1)
+        ts = np.array([bracket_frames(bracket_exposures(float(b.max(initial=0.0)), sensor), frames)
+                       for b in B]).reshape(len(B), -1)
     else:
-        ts = np.broadcast_to(fixed, (len(B), len(fixed)))
+        ts = np.broadcast_to(bracket_frames(list(fixed), frames), (len(B), len(fixed) * frames))
     g = effective_gain(sensor)  # the plan's analogue gain, 0 dB
     const_var = sensor.read_noise_e ** 2 + g * g / 12.0
     e_thr = (saturation_threshold_dn(sensor) - sensor.black_level_dn) * g
