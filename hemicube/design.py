@@ -196,7 +196,7 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
     from reconstruction.data import LUMITEXEL_SCALE, SamplingConfig, heldout_set
     from reconstruction.train import export_patterns
     from twin.capture.pattern_sets import signed_weights
-    from twin.capture.plan import DEFAULT_FRAMES, bracket_exposures, bracket_frames
+    from twin.capture.plan import photo_exposures
     from twin.design.costs import led_duty, photo_seconds, upload_cost
     from twin.design.noise import measurement_noise, olat_functional_gain
     from twin.view.cross_plot import save_pattern_image
@@ -223,7 +223,7 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
         exposures.append(noise["exposures_s"])                      # (K, 2, raw frames: bracket x frames)
         saturated |= noise["saturated"]
         # the one-LED-at-a-time capture the gain compares with: a photo per lit LED, bracketed as the plan does
-        olat.append([bracket_frames(bracket_exposures(float(m[:, i].max()), sensor), DEFAULT_FRAMES) for i in lit])
+        olat.append([photo_exposures(float(m[:, i].max()), sensor) for i in lit])
         if v == 0:
             snr = np.abs(noise["snr"])
             gain = olat_functional_gain(rig, signed, m, sensor)

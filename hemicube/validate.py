@@ -60,8 +60,8 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int 
     metrics, panels = evaluate(cap, recon, rig_obj, device=device)
     thresholds = thresholds_for(rig_obj.name, resolution, str(sample))
     rows = check(metrics, thresholds)
-    notes = [f"rig {rig_obj.name!r}, sample {sample!r}, seed {seed}, {frames} frame(s) an exposure, device {device}, texture grid "
-             f"{resolution}^2 over {recon.grid.size_mm:.1f} mm, line {recon.holdout_line} held out of fine-tuning",
+    notes = [f"rig {rig_obj.name!r}, sample {sample!r}, seed {seed}, {frames} frame(s) an exposure, device {device}, "
+             f"texture grid {resolution}^2 over {recon.grid.size_mm:.1f} mm, line {recon.holdout_line} held out of fine-tuning",
              "renders compare texel values on the texture grid (network units); 'truth_maps' renders the true maps "
              "the same way: the ceiling that the photo's noise and pixel footprint allow"]
     if not thresholds:

@@ -169,6 +169,12 @@ def bracket_frames(exposures: list[float], frames: int) -> list[float]:
     return [t for t in exposures for _ in range(frames)]
 
 
+def photo_exposures(max_radiance: float, sensor, frames: int = DEFAULT_FRAMES) -> list[float]:
+    """The exposures of a photo's raw frames, in the order they are taken: the bracket of a photo whose brightest
+    radiance is `max_radiance` (bracket_exposures), each exposure `frames` times (bracket_frames)."""
+    return bracket_frames(bracket_exposures(max_radiance, sensor), frames)
+
+
 def check_frames(frames) -> int:
     if not isinstance(frames, int) or isinstance(frames, bool) or not 1 <= frames <= MAX_FRAMES_PER_PHOTO // BRACKET:
         raise CaptureError(f"frames per exposure must be an integer in [1, {MAX_FRAMES_PER_PHOTO // BRACKET}] "

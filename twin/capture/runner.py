@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.capture.plan import (BRACKET, BRACKET_RATIO, DEFAULT_FRAMES, CaptureError, bracket_exposures, bracket_frames,
-                               build_patterns, check_frames, frame_id, paper_plan)
+from twin.capture.plan import (BRACKET, BRACKET_RATIO, DEFAULT_FRAMES, CaptureError, build_patterns, check_frames,
+                               frame_id, paper_plan, photo_exposures)
 from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession
 
 WRITERS = max(1, min(8, os.cpu_count() or 1))
@@ -94,7 +94,7 @@ def photos(rig, sims: dict, patterns, todo, device: str, stage=None, frames: int
         cam = rig.camera(photo.camera)
         with stage("sensor"):
             shown = sim.show(patterns.levels[index[photo.pattern]])
-            exposures = bracket_frames(bracket_exposures(sim.meter(photo.camera), cam.sensor), frames)
+            exposures = photo_exposures(sim.meter(photo.camera), cam.sensor, frames)
             ids = [frame_id(photo, j) for j in range(len(exposures))]
             raws = wp.empty((len(exposures), cam.height, cam.width), dtype=wp.uint16, device=device)
             exposures, grabbed = sim.grab_bracket(photo.camera, exposures, ids, raws)  # as the camera applied

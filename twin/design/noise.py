@@ -35,7 +35,7 @@ import numpy as np
 
 from twin.camera.hdr import EXCLUSION_Z, saturation_threshold_dn
 from twin.camera.sensor import effective_gain
-from twin.capture.plan import DEFAULT_FRAMES, bracket_exposures, bracket_frames
+from twin.capture.plan import DEFAULT_FRAMES, bracket_frames, photo_exposures
 from twin.rig.camera import SensorParams
 
 
@@ -157,8 +157,7 @@ def _photo_noise(B, fixed, sensor: SensorParams, frames: int):
     `frames` times in a row: the merge's order (shortest first, stable), so its exclusion rule counts the
     repeats of an exposure among the frames used before."""
     if fixed is None:
-        ts = np.array([bracket_frames(bracket_exposures(float(b.max(initial=0.0)), sensor), frames)
-                       for b in B]).reshape(len(B), -1)
+        ts = np.array([photo_exposures(float(b.max(initial=0.0)), sensor, frames) for b in B]).reshape(len(B), -1)
     else:
         ts = np.broadcast_to(bracket_frames(list(fixed), frames), (len(B), len(fixed) * frames))
     g = effective_gain(sensor)  # the plan's analogue gain, 0 dB
