@@ -50,7 +50,8 @@ architecture): a lobe of alpha <= 0.02 lights ~3 of the paper rig's 12,288 LEDs,
 cannot place. The decoder adds one von Mises-Fisher lobe over the LEDs' directions d_l from the sample's centre,
     m_l = m_base,l + A exp(kappa (d_l . c - 1)),  computed as  log(1 + m_l) = logaddexp(y_l, log A + kappa (d_l . c - 1))
 (y = log(1 + m_base), the decoder's own output), with (c, kappa, A) from a head on its last hidden layer (-> 128 -> 5):
-the output stays log(1 + m), so every caller is unchanged. The directions are the rig's
+the output stays log(1 + m), so every caller is unchanged. `decode_lumitexel` forms the same sum directly,
+max(expm1(y) + exp(z), 0), which halves a fine-tuning step on the paper rig (docs/performance.md). The directions are the rig's
 (`reconstruction.data.led_directions`), a buffer kept with the weights. Measured on the paper rig (docs/performance.md):
 the narrow peaks' log RMS 2.43 -> 1.62 at equal training time, the whole held-out set +6%.
 
@@ -398,6 +399,27 @@ class Encoder(nn.Module):
 # ------------------------------------------------------------------------------------------------ decoder
 
 
+class _Float32Product(torch.autograd.Function):
+    """a @ b.T in float32 in the forward and the backward pass, whatever TF32 setting the caller runs under (the
+    backward runs where autograd is called, outside any setting made around the forward). b is a constant."""
+
+    @staticmethod
+    def forward(ctx, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        from twin.optics.torch_ops import tf32_products  # Warp's kernels load with it: not at this module's import
+
+        ctx.save_for_backward(b)
+        with tf32_products(False):
+            return a @ b.T
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        from twin.optics.torch_ops import tf32_products
+
+        (b,) = ctx.saved_tensors
+        with tf32_products(False):
+            return grad @ b, None
+
+
 def log_to_lumitexel(log_lumitexel: torch.Tensor) -> torch.Tensor:
     """The decoder's log(1 + m) -> m = exp(.) - 1, clamped at >= 0 (reference §3.3)."""
     return torch.clamp(torch.expm1(log_lumitexel), min=0.0)
@@ -451,22 +473,44 @@ class Decoder(nn.Module):
             self._directions_set = True
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
-        if latent.ndim != 2 or latent.shape[1] != self.config.latent_dim:
-            raise ValueError(f"latent must have shape (B, {self.config.latent_dim}), got {tuple(latent.shape)}")
+        self._check(latent)
         if not self.config.peak_term:
             return self.net(latent)
-        if not self._directions_set:
+        y, z = self._with_peak(latent)
+        # log(1 + m_base + A exp(kappa (d . c - 1))) = logaddexp(y, log A + kappa (d . c - 1)), y = log(1 + m_base)
+        return torch.logaddexp(y, z)
+
+    def _check(self, latent: torch.Tensor) -> None:
+        if latent.ndim != 2 or latent.shape[1] != self.config.latent_dim:
+            raise ValueError(f"latent must have shape (B, {self.config.latent_dim}), got {tuple(latent.shape)}")
+        if self.config.peak_term and not self._directions_set:
             raise ValueError("the decoder's peak term has no LED directions: set_led_directions(led_directions(rig)) "
                              "or load weights that carry them")
+
+    def _with_peak(self, latent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(y, z) (B, L): the decoder's own log(1 + m_base) and the peak's log A + kappa (d . c - 1)."""
         h = self.net[:-1](latent)
         p = self.peak(h)
         c = p[:, :3] / p[:, :3].norm(dim=1, keepdim=True).clamp_min(1e-6)
         kappa = p[:, 3:4].clamp(PEAK_LOG_KAPPA[0], PEAK_LOG_KAPPA[1]).exp()
-        # log(1 + m_base + A exp(kappa (d . c - 1))) = logaddexp(y, log A + kappa (d . c - 1)), y = log(1 + m_base)
-        return torch.logaddexp(self.net[-1](h), p[:, 4:5] + kappa * (c @ self.led_directions.T - 1.0))
+        # z as one product, [kappa c, log A - kappa] . [d, 1]: one (B, L) pass, where the product, the shift and the
+        # scale took three. In float32 in both passes even where the caller allows TF32 (fine-tuning on CUDA does):
+        # this product's inputs carry kappa (up to e^12), which TF32's 10-bit mantissa would round by ~5e-4 of
+        # itself, moving the exponent by kappa times that; and kappa's gradient, c . (g @ d) - sum(g), cancels where
+        # d . c ~ 1. Its inner size is 4, so it is bound by writing z either way (docs/performance.md: with the
+        # guard, TF32 moves fine-tuning's gradients no more than in the logaddexp form it replaces).
+        q = torch.cat([kappa * c, p[:, 4:5] - kappa], dim=1)
+        d1 = torch.cat([self.led_directions, self.led_directions.new_ones(len(self.led_directions), 1)], dim=1)
+        return self.net[-1](h), _Float32Product.apply(q, d1)
 
     def decode_lumitexel(self, latent: torch.Tensor) -> torch.Tensor:
-        return log_to_lumitexel(self.forward(latent))
+        """m = max(exp(forward) - 1, 0); with the peak term as max(expm1(y) + exp(z), 0), the same sum without
+        the log and exp of logaddexp: fewer passes over the (B, L) values, which bound fine-tuning on a GPU."""
+        if not self.config.peak_term:
+            return log_to_lumitexel(self.forward(latent))
+        self._check(latent)
+        y, z = self._with_peak(latent)
+        return torch.clamp(torch.expm1(y) + torch.exp(z), min=0.0)
 
 
 # ------------------------------------------------------------------------------------------------ network
@@ -506,7 +550,7 @@ class AcquisitionNet(nn.Module):
         return self.decoder(torch.cat([albedo, shape], dim=-1))
 
     def decode_lumitexel(self, albedo: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
-        return log_to_lumitexel(self.decode(albedo, shape))
+        return self.decoder.decode_lumitexel(torch.cat([albedo, shape], dim=-1))
 
     def forward(self, lumitexels: torch.Tensor, pair_with: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         if pair_with is not None:  # the albedo-swap step through forward, so that DDP sees it (reconstruction.train)

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from reconstruction.network import (
-    REFERENCE_DECODER_WIDTHS, AcquisitionNet, Decoder, Encoder, NetworkConfig, PatternLayer,
+    REFERENCE_DECODER_WIDTHS, _Float32Product, AcquisitionNet, Decoder, Encoder, NetworkConfig, PatternLayer,
     albedo_swap_loss, count_parameters, decoder_widths, encoder_widths, log_to_lumitexel, lumitexel_loss,
 )
 
@@ -485,12 +485,53 @@ def test_peak_term_adds_one_lobe_over_the_led_directions(architecture):
     z = torch.randn(5, cfg.latent_dim, dtype=torch.float64)
     with torch.no_grad():
         m = log_to_lumitexel(dec(z)).numpy()
+        direct = dec.decode_lumitexel(z).numpy()  # the same sum without logaddexp's log and exp
         base = np.expm1(dec.net(z).numpy())
     cu = c / np.linalg.norm(c)
-    expected = base + A * np.exp(kappa * (dirs.astype(np.float64) @ cu - 1.0))
-    np.testing.assert_allclose(m, np.maximum(expected, 0.0), rtol=1e-10, atol=1e-12)
+    expected = np.maximum(base + A * np.exp(kappa * (dirs.astype(np.float64) @ cu - 1.0)), 0.0)
+    np.testing.assert_allclose(m, expected, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(direct, expected, rtol=1e-12, atol=1e-14)
     zg = z[:2].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda x: dec(x), (zg,), eps=1e-6, atol=1e-6)
+    assert torch.autograd.gradcheck(lambda x: dec.decode_lumitexel(x), (zg,), eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="TF32 exists on CUDA devices only")
+def test_peak_term_cosines_stay_float32_under_tf32():
+    """Fine-tuning on CUDA allows TF32 products (FinetuneConfig.precision): the peak's kappa (d . c - 1) must not
+    take TF32's 10-bit mantissa, whose ~5e-4 error in d . c a sharp lobe (kappa 1e4 here) turns into an error of
+    several in the exponent. With TF32 allowed the decoded lumitexel matches float64's within float32's own error
+    at the lobe (its exponent ~ kappa * 6e-8 ~ 1e-3: rtol 2e-2)."""
+    from twin.optics.torch_ops import tf32_products
+
+    L = 4096
+    cfg = _quiet(L, architecture="compact", peak_term=True)
+    torch.manual_seed(0)
+    dec = AcquisitionNet(cfg).decoder.eval()
+    dirs = _directions(L, seed=3)
+    dec.set_led_directions(dirs)
+    c = dirs[7].astype(np.float64) + np.array([0.004, -0.003, 0.0])  # a lobe among the LEDs, off any one of them
+    with torch.no_grad():
+        dec.peak[-1].weight.zero_()
+        dec.peak[-1].bias.copy_(torch.tensor([*c, math.log(1e4), math.log(50.0)], dtype=torch.float32))
+    z = torch.randn(3, cfg.latent_dim)
+    reference = dec.double()
+    with torch.no_grad():
+        expected = reference.decode_lumitexel(z.double()).numpy()
+        dec_gpu = reference.float().to("cuda:0")
+        with tf32_products(True):
+            got = dec_gpu.decode_lumitexel(z.to("cuda:0")).cpu().double().numpy()
+    lobe = expected > 1.0  # where the peak term decides the value
+    assert lobe.sum() >= 3
+    np.testing.assert_allclose(got[lobe], expected[lobe], rtol=2e-2)
+    # the product's backward too, which autograd runs under the caller's setting: kappa's gradient cancels there
+    q = torch.tensor([[*(1e4 * c / np.linalg.norm(c)), math.log(50.0) - 1e4]], dtype=torch.float64)
+    d1 = torch.cat([torch.as_tensor(dirs, dtype=torch.float64), torch.ones(L, 1, dtype=torch.float64)], dim=1)
+    g = torch.exp(q @ d1.T)  # the gradient exp(z) brings back from the lumitexel
+    qc = q.float().cuda().requires_grad_(True)
+    with tf32_products(True):
+        _Float32Product.apply(qc, d1.float().cuda()).backward(g.float().cuda())
+    np.testing.assert_allclose(qc.grad.cpu().double().numpy(), (g @ d1).numpy(), rtol=1e-5, atol=1e-5 * float(g.sum()))
 
 
 def test_peak_term_needs_its_directions():

@@ -12,13 +12,12 @@ output was not kept as a file. A record of how the figures were measured, not pa
 import contextlib
 import json
 import sys
-import time
 
 import torch
 import warp as wp
 
 import reconstruction.network as N
-from bench_setup import finetune_texels
+from bench_setup import adam_step_ms, finetune_texels
 from reconstruction.finetune import _frozen, _Problem, grey_to_rgb
 from twin.optics.torch_ops import tf32_products
 
@@ -76,7 +75,6 @@ class Fused(torch.autograd.Function):
 
 out_path, n = sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 16384
 dev = "cuda" if torch.cuda.is_available() else "cpu"
-sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
 rig, model, lines, W, z, hold = finetune_texels("paper", n, dev)
 wp.init()
 prob = _Problem(model, torch.as_tensor(lines, device=dev), torch.as_tensor(W, device=dev), 8, 1e-6)
@@ -84,22 +82,11 @@ x56, x72 = torch.as_tensor(z, device=dev), torch.as_tensor(grey_to_rgb(z), devic
 torch_chain = N.log_to_lumitexel
 
 
-def steps(energy, x0, count=30):
-    x = x0.clone().requires_grad_(True)
-    opt = torch.optim.Adam([x], lr=0.02)
-    for i in range(count + 3):
-        if i == 3:
-            sync()
-            t = time.perf_counter()
-        opt.zero_grad(set_to_none=True)
-        e = energy(x)
-        e.backward()
-        opt.step()
-        float(e.detach())
-    sync()
+def steps(energy, x0):
+    ms = adam_step_ms(energy, x0)
     g = x0.clone().requires_grad_(True)
     energy(g).backward()
-    return (time.perf_counter() - t) / count * 1e3, g.grad
+    return ms, g.grad
 
 
 res = {"device": torch.cuda.get_device_name(0) if dev == "cuda" else "cpu", "texels": n}

@@ -438,10 +438,10 @@ if __name__ == "__main__":
     orig_fit = fitting.fit_ggx
 
     def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, secondary=None, grid_shape=None,
-                config=fitting.FitConfig()):
+                config=fitting.FitConfig(), checkpoint=None):
         t = time.perf_counter()
         res = orig_fit(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary,
-                       grid_shape=grid_shape, config=config)
+                       grid_shape=grid_shape, config=config, checkpoint=checkpoint)
         timing["pipeline_fit_s"] = time.perf_counter() - t
         if os.environ.get("DUMP"):  # the fit's inputs and the pipeline's result, to rerun the refinement alone
             import pickle
