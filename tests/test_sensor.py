@@ -16,7 +16,8 @@ import pytest
 from twin.camera.bayer import cfa_index
 from twin.rig.camera import Camera, SensorParams
 from twin.camera.sensor import (POISSON_INVERSION_MAX, apply_crosstalk, apply_optics, apply_vignetting, effective_gain,
-                         expected_dn, fixed_pattern, saturation_radiance, simulate_raw, vignetting_factor)
+                         expected_dn, fixed_pattern, fixed_pattern_arrays, raw_frame, saturation_radiance,
+                         sensor_consts, simulate_raw, vignetting_factor)
 
 S = SensorParams()  # IMX540-like defaults: 12 bit, RG, 2.4 e/DN, FW 9800 e, read 2.3 e, black 16 DN
 H = W = 128
@@ -267,6 +268,26 @@ def test_determinism_bytes():
     others = {_sha(sim(rad, seed=43, frame=3)), _sha(sim(rad, seed=42, frame=4)),
               _sha(sim(rad, seed=42, frame=3, key="cam1")), _sha(sim(rad, seed=2**40 + 42, frame=3))}
     assert h not in others and len(others) == 4
+
+
+def test_fixed_patterns_drawn_once_give_the_same_bytes():
+    """A capture draws a camera's fixed patterns once (fixed_pattern_arrays) and hands them to every raw_frame:
+    the same bytes as simulate_raw, which draws them per call; and the same bytes as when the raw kernel drew
+    them per pixel in every frame (the digest pinned from that version, main at 2975137)."""
+    import warp as wp
+
+    rng = np.random.default_rng(3)
+    rad = rng.uniform(0, 3 * saturation_radiance(S, T), size=(64, 96, 3)).astype(np.float32)
+    assert _sha(sim(rad, seed=42, frame=3)) == "68502fe4183f341d1cbe78b70bf7fbde7e39edcdcdc129787f7b3bff8723590f"
+    rad_wp = wp.array(rad, dtype=wp.vec3f, device="cpu")
+    fixed = fixed_pattern_arrays(sensor_consts(S, exposure_s=T, seed=0, frame=0, camera_key="cam0"), 64, 96, "cpu")
+    np.testing.assert_array_equal(fixed[0].numpy(), fixed_pattern(S, "cam0", 64, 96)[0])
+    for seed, frame, t in ((42, 3, T), (7, 0, T / 3), (7, 1, 2 * T)):
+        k = sensor_consts(S, exposure_s=t, seed=seed, frame=frame, camera_key="cam0")
+        assert np.array_equal(raw_frame(rad_wp, k, fixed=fixed).numpy(), sim(rad, t=t, seed=seed, frame=frame))
+    small = fixed_pattern_arrays(sensor_consts(S, exposure_s=T, seed=0, frame=0, camera_key="cam0"), 32, 96, "cpu")
+    with pytest.raises(ValueError, match=r"fixed patterns must be two \(64, 96\) arrays"):
+        raw_frame(rad_wp, k, fixed=small)
 
 
 def test_noise_is_a_function_of_the_pixel_not_the_launch():

@@ -38,7 +38,9 @@ independent of the image size and of thread scheduling) and a 32-bit seed made o
 * the per-capture noise (shot, read) from sha256(f"noise|{seed}|{frame}|{camera_key}");
 * the FIXED patterns PRNU_ij ~ N(0, prnu) (relative gain, clamped at -1) and DSNU_ij ~ N(0, dsnu_e)
   (electrons) from sha256(f"fpn|{camera_key}") only: the same for every seed and frame of a camera,
-  different per camera (`fixed_pattern` returns them).
+  different per camera (`fixed_pattern` returns them). They are drawn into a camera's (gain, offset) arrays
+  (`fixed_pattern_arrays`), which the raw kernel reads: a capture draws them once per camera, not once per
+  frame (a third of the sensor's time on the mini rig), with the same bits.
 
 Hashes are sha256 (first 8 bytes, folded to 32 bits because Warp seeds are 32-bit), never Python's
 `hash()`, so a given (seed, frame, camera_key, inputs) gives byte-identical output on every run.
@@ -199,16 +201,16 @@ def fixed_pattern_at(fpn_seed: int, pid: int, prnu: wp.float64, dsnu: wp.float64
 
 
 @wp.kernel
-def raw_kernel(rad: wp.array2d(dtype=wp.vec3f), k: SensorConsts, out: wp.array2d(dtype=wp.uint16)):
+def raw_kernel(rad: wp.array2d(dtype=wp.vec3f), k: SensorConsts, gain: wp.array2d(dtype=wp.float64),
+               offset: wp.array2d(dtype=wp.float64), out: wp.array2d(dtype=wp.uint16)):
     i, j = wp.tid()
     pid = i * ROW_STRIDE + j
     c = k.cfa[(i % 2) * 2 + (j % 2)]
-    fp = fixed_pattern_at(k.fpn_seed, pid, k.prnu, k.dsnu)
-    mu = wp.float64(rad[i, j][c]) * k.e_per_rad * fp[0] + k.dark_e
+    mu = wp.float64(rad[i, j][c]) * k.e_per_rad * gain[i, j] + k.dark_e
     mu = wp.min(wp.max(mu, wp.float64(0.0)), k.mu_max)
     s = wp.rand_init(k.noise_seed, pid)
     n = poisson_quantile(mu, uniform52(wp.randu(s), wp.randu(s)))
-    e = n + fp[1] + k.read_e * normal_quantile(uniform52(wp.randu(s), wp.randu(s)))
+    e = n + offset[i, j] + k.read_e * normal_quantile(uniform52(wp.randu(s), wp.randu(s)))
     e = wp.min(e, k.full_well)
     dn = wp.floor(e * k.dn_per_e + k.black + wp.float64(0.5))
     dn = wp.min(wp.max(dn, wp.float64(0.0)), k.dn_max)
@@ -267,13 +269,24 @@ def fixed_pattern(sensor: SensorParams, camera_key: str, height: int, width: int
     electrons), exactly those `simulate_raw` uses for `camera_key`."""
     _check_key(camera_key)
     _check_size(height, width)
+    return tuple(a.numpy() for a in _draw_fixed(fixed_pattern_seed(camera_key), float(sensor.prnu),
+                                                float(sensor.dsnu_e), height, width, device))
+
+
+def fixed_pattern_arrays(consts: SensorConsts, height: int, width: int, device) -> tuple[wp.array, wp.array]:
+    """The fixed patterns of the camera `consts` were made for (`sensor_consts`; the same for every seed, frame
+    and exposure of that camera) as (gain, offset) Warp arrays on `device`, for `raw_frame`."""
+    _check_size(height, width)
+    return _draw_fixed(consts.fpn_seed, consts.prnu, consts.dsnu, height, width, device)
+
+
+def _draw_fixed(fpn_seed: int, prnu: float, dsnu: float, height: int, width: int, device):
     _init()
     gain = wp.empty((height, width), dtype=wp.float64, device=device)
     offset = wp.empty((height, width), dtype=wp.float64, device=device)
-    wp.launch(fixed_pattern_kernel, dim=(height, width),
-              inputs=[fixed_pattern_seed(camera_key), float(sensor.prnu), float(sensor.dsnu_e)],
-              outputs=[gain, offset], device=device)
-    return gain.numpy(), offset.numpy()
+    wp.launch(fixed_pattern_kernel, dim=(height, width), inputs=[fpn_seed, prnu, dsnu], outputs=[gain, offset],
+              device=device)
+    return gain, offset
 
 
 def sensor_consts(sensor: SensorParams, *, exposure_s: float, gain_db: float = 0.0, seed: int, frame: int,
@@ -302,14 +315,22 @@ def sensor_consts(sensor: SensorParams, *, exposure_s: float, gain_db: float = 0
     return k
 
 
-def raw_frame(radiance: wp.array, consts: SensorConsts, out: wp.array | None = None) -> wp.array:
+def raw_frame(radiance: wp.array, consts: SensorConsts, out: wp.array | None = None,
+              fixed: tuple[wp.array, wp.array] | None = None) -> wp.array:
     """One raw frame on radiance's device, no host round trip: radiance (H, W) vec3f Warp array
-    (non-negative, finite: the caller's guarantee) -> `out` (H, W) uint16 (allocated when None)."""
+    (non-negative, finite: the caller's guarantee) -> `out` (H, W) uint16 (allocated when None). `fixed`: the
+    camera's `fixed_pattern_arrays(consts, H, W, device)`, drawn here when None; a caller taking many frames of
+    one camera draws them once."""
     H, W = radiance.shape[:2]
     _check_size(H, W)
+    if fixed is None:
+        fixed = fixed_pattern_arrays(consts, H, W, radiance.device)
+    if any(a.shape != (H, W) or a.device != radiance.device for a in fixed):
+        raise ValueError(f"fixed patterns must be two ({H}, {W}) arrays on {radiance.device}, got "
+                         f"{[(a.shape, str(a.device)) for a in fixed]}")
     if out is None:
         out = wp.empty((H, W), dtype=wp.uint16, device=radiance.device)
-    wp.launch(raw_kernel, dim=(H, W), inputs=[radiance, consts], outputs=[out], device=radiance.device)
+    wp.launch(raw_kernel, dim=(H, W), inputs=[radiance, consts, *fixed], outputs=[out], device=radiance.device)
     return out
 
 

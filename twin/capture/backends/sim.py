@@ -24,6 +24,7 @@ class SimBackend:
         self._surfaces: dict = {}
         self._radiance: dict = {}  # (camera, levels bytes) -> ((H, W) vec3f Warp view of a rendered image, max)
         self._levels: np.ndarray | None = None
+        self._fixed: dict = {}  # camera -> its sensor's (gain, offset) fixed-pattern arrays on the device
 
     def surfaces(self, camera: str):
         from twin.camera.imaging import trace_pixels
@@ -65,12 +66,15 @@ class SimBackend:
         return self._current(camera)[1]
 
     def grab(self, camera: str, exposure_s: float, frame: int, out) -> None:
-        from twin.camera.sensor import raw_frame, sensor_consts
+        from twin.camera.sensor import fixed_pattern_arrays, raw_frame, sensor_consts
 
         cam = self.rig.camera(camera)
-        raw_frame(self._current(camera)[0], sensor_consts(cam.sensor, exposure_s=exposure_s, seed=self.seed,
-                                                          frame=frame, camera_key=f"{self.rig.digest()}/{camera}"),
-                  out)
+        radiance = self._current(camera)[0]
+        consts = sensor_consts(cam.sensor, exposure_s=exposure_s, seed=self.seed, frame=frame,
+                               camera_key=f"{self.rig.digest()}/{camera}")
+        if camera not in self._fixed:  # the camera's fixed patterns, the same for every frame: drawn once
+            self._fixed[camera] = fixed_pattern_arrays(consts, *radiance.shape[:2], radiance.device)
+        raw_frame(radiance, consts, out, fixed=self._fixed[camera])
 
     def grab_bracket(self, camera: str, exposures_s, frames, out):
         for j, (t, f) in enumerate(zip(exposures_s, frames)):
