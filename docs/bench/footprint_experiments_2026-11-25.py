@@ -6,9 +6,11 @@ runs `hemicube validate`'s end-to-end function (mini rig, capture seed 1, CPU) o
 stages MODE names replaced, and prints the goal rows as JSON. MODE holds any of:
     mhc    the HDR merge's demosaic replaced by Malvar-He-Cutler 2004 (5x5 kernels; equal to colour-demosaicing's
            demosaicing_CFA_Bayer_Malvar2004 away from the 2-pixel border)
-    x4     every exposure of the bracket taken 4 times (the merge averages them)
+    x4     every exposure of the bracket taken 4 times (the merge averages them; since 2026-11-27 the capture's
+           default is four, so x4 now makes 16)
     cell   each texel's photos the mean of 3 x 3 samples at +-1/3 texel
-    raw    the primary view's photos the mean of each colour's own photosites inside the texel's cell
+    raw    the primary view's photos the mean of each colour's own photosites inside the texel's cell (with
+           RAW_VIEWS=both, the secondary view's too)
     hyb    each photo's bilinear value replaced by the Malvar-He-Cutler one where they differ by more than 3
            robust standard deviations; with "loc", the difference divided by the square root of the signal first
     var    the same test against the exact variance of the difference, from the HDR merge of the stored raw frames
@@ -105,12 +107,9 @@ if __name__ == "__main__":
         import reconstruction.extraction as ex
         from twin.camera.bayer import cfa_index
         from twin.camera.correction import apply_colour_matrix
-        from twin.capture.plan import LEARNED, LINES
         from reconstruction.data import LUMITEXEL_SCALE
         orig_extract2 = ex.extract
-        def extract(session, rig, grid, alignment, **kw):
-            base = orig_extract2(session, rig, grid, alignment, **kw)
-            cam = rig.camera(next(iter(rig.cameras)))
+        def cell_reader(rig, grid, cam):
             H, W = cam.height, cam.width
             R = grid.resolution
             i, j = (a.ravel() for a in pixel_cells(rig, grid, cam))
@@ -121,15 +120,27 @@ if __name__ == "__main__":
             flat = flat[..., 0].ravel()
             sel = [(texel >= 0) & (ch == c) for c in range(3)]
             counts = [np.bincount(texel[s], minlength=R * R) for s in sel]
-            print("photosites per texel min", [int(c.min()) for c in counts], file=sys.stderr)
+            print("photosites per texel min", cam.name, [int(c.min()) for c in counts], file=sys.stderr)
             def cellvals(img):
                 img = img.reshape(-1, 3)
                 out = np.stack([np.bincount(texel[sel[c]], weights=(img[sel[c], c] * flat[sel[c]]), minlength=R * R) / np.maximum(counts[c], 1) for c in range(3)], 1)
                 return np.maximum(apply_colour_matrix(out, C), 0) * np.float32(LUMITEXEL_SCALE)
-            lines = np.stack([cellvals(session.photo(k, 0)) for k in LINES], 1).astype(np.float32)
+            return cellvals
+        def extract(session, rig, grid, alignment, **kw):
+            # RAW_VIEWS=both: the secondary view's learned-pattern photos read the same way (its own photosites
+            # inside the same cells on the sample plane), so that both views measure the same footprint
+            base = orig_extract2(session, rig, grid, alignment, **kw)
+            names = list(rig.cameras)
+            cellvals = cell_reader(rig, grid, rig.camera(names[0]))
+            ix = ex.plan_indices(session)
+            lines = np.stack([cellvals(session.photo(k, 0)) for k in ix.lines], 1).astype(np.float32)
             lp = base.learned_photos.copy()
-            for k in LEARNED:
+            for k in ix.learned:
                 lp[:, 0, k] = cellvals(session.photo(k, 0))
+            if os.environ.get("RAW_VIEWS") == "both":
+                cellvals1 = cell_reader(rig, grid, rig.camera(names[1]))
+                for k in ix.learned:
+                    lp[:, 1, k] = cellvals1(session.photo(k, 1))
             return dataclasses.replace(base, lines=lines, learned_photos=lp)
         ex.extract = extract
     if "fp" in mode:
