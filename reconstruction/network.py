@@ -51,9 +51,9 @@ cannot place. The decoder adds one von Mises-Fisher lobe over the LEDs' directio
     m_l = m_base,l + A exp(kappa (d_l . c - 1)),  computed as  log(1 + m_l) = logaddexp(y_l, log A + kappa (d_l . c - 1))
 (y = log(1 + m_base), the decoder's own output), with (c, kappa, A) from a head on its last hidden layer (-> 128 -> 5):
 the output stays log(1 + m), so every caller is unchanged. `decode_lumitexel` forms the same sum directly,
-max(expm1(y) + exp(z), 0), which halves a fine-tuning step on the paper rig (docs/performance.md). The directions are the rig's
-(`reconstruction.data.led_directions`), a buffer kept with the weights. Measured on the paper rig (docs/performance.md):
-the narrow peaks' log RMS 2.43 -> 1.62 at equal training time, the whole held-out set +6%.
+max(expm1(y) + exp(z), 0), which halves a fine-tuning step on the paper rig (docs/performance.md). The directions
+are the rig's (`reconstruction.data.led_directions`), a buffer kept with the weights. Measured on the paper rig
+(docs/performance.md): the narrow peaks' log RMS 2.43 -> 1.62 at equal training time, the whole held-out set +6%.
 
 The mini rig (396 upper LEDs) gets a 260 k-parameter network (decoder 56 -> 64 x 5 -> 72 -> 72 -> 136 ->
 136 -> 264 -> 396); the paper rig gets the released 166 M-parameter decoder. Small models train fastest

@@ -10,8 +10,8 @@ caller allows (TF32 in fine-tuning on CUDA).
 2. Same work: each form's latent gradient against the baseline form evaluated without TF32 (float32 products): the
    largest difference over the largest entry, and the median over texels of each texel's relative difference. In
    float32 the new form must agree within 1e-3 of the largest (exit 1 if not); with TF32, where the decoder's other
-   products differ too, its texels' median must be no further from float32 than the baseline form's plus the forms' own float32
-   difference.
+   products differ too, its texels' median must be no further from float32 than the baseline form's plus the
+   forms' own float32 difference.
 3. The shipped network's held-out figures (reconstruction.pretrained.score_network: Eq. 3 and the narrow lobes'),
    float32 and with TF32 allowed, each form: what TF32 in the peak's cosines costs.
 A record of how the figures were measured, not part of the pipeline.
@@ -98,7 +98,8 @@ for form in FORMS:
 use("direct")
 res["passed"] = all(res["grad"][f"{p}_direct_float32_max_rel_diff"] <= 1e-3 and
                     res["grad"][f"{p}_direct_tf32_median_rel_diff"] <=
-                    res["grad"][f"{p}_logaddexp_tf32_median_rel_diff"] + res["grad"][f"{p}_direct_float32_median_rel_diff"]
+                    res["grad"][f"{p}_logaddexp_tf32_median_rel_diff"]
+                    + res["grad"][f"{p}_direct_float32_median_rel_diff"]
                     for p, _, _ in passes)
 print(json.dumps(res, indent=1))
 with open(out_path, "w") as f:

@@ -325,7 +325,7 @@ def raw_frame(radiance: wp.array, consts: SensorConsts, out: wp.array | None = N
     _check_size(H, W)
     if fixed is None:
         fixed = fixed_pattern_arrays(consts, H, W, radiance.device)
-    if any(a.shape != (H, W) or a.device != radiance.device for a in fixed):
+    if len(fixed) != 2 or any(a.shape != (H, W) or a.device != radiance.device for a in fixed):
         raise ValueError(f"fixed patterns must be two ({H}, {W}) arrays on {radiance.device}, got "
                          f"{[(a.shape, str(a.device)) for a in fixed]}")
     if out is None:
