@@ -164,9 +164,10 @@ class FitConfig:
     # one material, the scale of a Gaussian smoothness prior that texels whose photos barely constrain alpha
     # (a weak or rough lobe) borrow from; None: every texel alone
     alpha_prior: float | None = 0.1
-    # weight of the line term (reference §5's lambda_m; ours, measured). The reference's 0.01-0.1 multiply
-    # unnormalised sums, whose squares exceed the lumitexels' by (mean M / mean m)^2 (81 on the mini rig's
-    # ramps, more with the paper rig's longer lines): 0.8-8 or more in this normalised loss.
+    # weight of the line term (reference §5's lambda_m; ours, measured) for photos of one frame an exposure: the
+    # reconstruction pipeline multiplies it by the capture's frames per exposure (an inverse-variance weight). The
+    # reference's 0.01-0.1 multiply unnormalised sums, whose squares exceed the lumitexels' by (mean M / mean m)^2
+    # (81 on the mini rig's ramps, more with the paper rig's longer lines): 0.8-8 or more in this normalised loss.
     lambda_lines: float = 100.0
     loss: str = "log1p"  # ours, measured
     seed: int = 0  # the neural method's initialisation and batches (the direct method draws nothing)

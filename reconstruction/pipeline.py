@@ -265,7 +265,12 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     # lobes between the lines, and the 45-degree view sees the grazing half-angles where Fresnel lifts a weak
     # specular lobe (docs/accuracy.md: ceramic alpha 21% -> 12% with the primary photos, ...)
     photos, weights = _photos(meas, True, keep)
-    fit_cfg = replace(config.fit, device=config.device)
+    # the photos' weight against the lumitexels (FitConfig.lambda_lines) was measured on photos of one frame an
+    # exposure; the HDR merge of F frames divides their temporal noise's variance by F while the decoder's error in
+    # the lumitexels stays, so, as an inverse-variance weight, it scales by F (issue #14: with four frames, every
+    # suite sample's alpha median improves or holds, docs/accuracy.md)
+    frames = int(session.header.get("frames_per_exposure", 1))
+    fit_cfg = replace(config.fit, device=config.device, lambda_lines=config.fit.lambda_lines * frames)
     checkpoint = _Checkpoint(stages, "fit_state", _key(key, asdict(fit_cfg)))
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                   secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,

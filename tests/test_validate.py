@@ -10,7 +10,9 @@ from __future__ import annotations
 import json
 
 import hemicube.cli
+from reconstruction.fitting import FitConfig
 from reconstruction.validation import thresholds_for
+from twin.capture.plan import DEFAULT_FRAMES
 from twin.materials.samples import load_sample, write_maps
 
 
@@ -30,6 +32,9 @@ def test_main_job_passes_its_thresholds(validate_dir, capsys):
     assert (validate_dir / "reconstruction" / "maps" / "normal_texture.exr").is_file()
     assert (validate_dir / "reconstruction" / "latent.exr").is_file()
     assert sorted(p.name for p in (validate_dir / "report" / "images").iterdir())
+    # the photos' weight in the fit is per frame of an exposure (reconstruction.pipeline: an inverse-variance weight)
+    fit = json.loads((validate_dir / "reconstruction" / "reconstruction.json").read_text())["fit"]["config"]
+    assert fit["lambda_lines"] == FitConfig().lambda_lines * DEFAULT_FRAMES
 
 
 def test_validate_any_map_folder(tmp_path, capsys):
