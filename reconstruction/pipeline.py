@@ -269,8 +269,8 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     # exposure; the HDR merge of F frames divides their temporal noise's variance by F while the decoder's error in
     # the lumitexels stays, so, as an inverse-variance weight, it scales by F (issue #14: with four frames, every
     # suite sample's alpha median improves or holds, docs/accuracy.md)
-    frames = int(session.header.get("frames_per_exposure", 1))
-    fit_cfg = replace(config.fit, device=config.device, lambda_lines=config.fit.lambda_lines * frames)
+    fit_cfg = replace(config.fit, device=config.device,
+                      lambda_lines=config.fit.lambda_lines * session.frames_per_exposure)
     checkpoint = _Checkpoint(stages, "fit_state", _key(key, asdict(fit_cfg)))
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                   secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,

@@ -22,7 +22,7 @@ import twin
 import hemicube.cli
 from twin.capture.plan import DEFAULT_FRAMES, CaptureError
 from twin.capture.runner import capture
-from twin.capture.session import verify
+from twin.capture.session import CaptureSession, verify
 
 ARGS = ["capture", "--backend", "sim", "--rig", "mini", "--sample", "ramps", "--seed", "1", "--no-progress"]
 
@@ -151,6 +151,13 @@ def test_frames_per_exposure(run_a, tmp_path):
         with pytest.raises(CaptureError, match=r"frames per exposure must be an integer in \[1, 5\]"):
             capture(twin.load_rig("mini"), "ramps", tmp_path / "bad", seed=1, progress=False, frames=bad)
     assert not (tmp_path / "bad").exists()
+    # the reader's count (the fit weighs the photos by it, reconstruction.pipeline); a bad one names the folder
+    assert CaptureSession.open(run_a).frames_per_exposure == DEFAULT_FRAMES
+    assert CaptureSession.open(out).frames_per_exposure == 1
+    s = CaptureSession.open(out)
+    s.header["frames_per_exposure"] = 0
+    with pytest.raises(CaptureError, match=r"x1: manifest's frames_per_exposure 0: frames per exposure must be"):
+        s.frames_per_exposure
 
 
 def test_validate_refuses_a_bad_frame_count_in_one_line(tmp_path, capsys):

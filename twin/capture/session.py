@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
-from twin.capture.plan import CaptureError, Photo
+from twin.capture.plan import CaptureError, Photo, check_frames
 
 FORMAT_NAME = "hemicube-capture"
 FORMAT_VERSION = 1
@@ -118,6 +118,16 @@ class CaptureSession:
     @property
     def sample(self) -> str:
         return self.header.get("sample", "a capture")
+
+    @property
+    def frames_per_exposure(self) -> int:
+        """Raw frames taken of each exposure of a photo's bracket (the header's key; absent: one, as in every folder
+        made before frame averaging); a value out of range is a CaptureError naming the folder."""
+        frames = self.header.get("frames_per_exposure", 1)
+        try:
+            return check_frames(frames)
+        except CaptureError as e:
+            raise CaptureError(f"{self.dir}: manifest's frames_per_exposure {frames!r}: {e}") from None
 
     def shown_patterns(self, camera_index: int = 0) -> dict[int, str]:
         """Photo index -> the name of the pattern it was taken under (the manifest's plan), for one camera."""
