@@ -195,8 +195,8 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
             return rec
         return None
 
-    def done(name, key, t, **extra):
-        timings[f"{name}_s"] = time.perf_counter() - t
+    def done(name, key, t, earlier=0.0, **extra):
+        timings[f"{name}_s"] = time.perf_counter() - t + earlier
         stages.record_stage(name, key, {"seconds": timings[f"{name}_s"], **_jsonable(extra)})
 
     key = _key(session.content_digest(), rig.digest(), config.device, asdict(config.align))
@@ -250,7 +250,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
                       checkpoint=checkpoint)
         latent, ft_info = ft.latent, {"iterations": ft.iterations, "seconds": ft.seconds}
         stages.write_latent(latent, grid.shape, ft.passes)
-        done("finetune", key, t, finetune=ft_info)
+        done("finetune", key, t, checkpoint.earlier, finetune=ft_info)
         stages.forget_stage("finetune_state")
         if checkpoint.loaded is not None:
             resumed.append(f"finetune ({checkpoint.loaded})")
@@ -275,7 +275,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                   secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,
                   config=fit_cfg, checkpoint=checkpoint if fit_cfg.method == "direct" else None)
-    timings["fitting_s"] = time.perf_counter() - t
+    timings["fitting_s"] = time.perf_counter() - t + checkpoint.earlier
     if checkpoint.loaded is not None:
         resumed.append(f"fitting ({checkpoint.loaded})")
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
@@ -296,21 +296,26 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
 class _Checkpoint:
     """A long stage's unfinished state in the stage folder under that stage's key (the checkpoints of
     reconstruction.finetune.finetune and reconstruction.fitting._fit_direct; the files are reconstruction/output.py's,
-    the stages output.PARTIAL_STAGES). `loaded`: the phase a killed run had reached, if any."""
+    the stages output.PARTIAL_STAGES). `loaded`: the phase a killed run had reached, if any; `earlier`: the seconds
+    the runs before this one had spent on the stage up to their last save (0 when none), which the stage's timing
+    adds, so that a stage resumed across calls reports the time its result took, not this call's share."""
 
     def __init__(self, stages: ReconstructionFolder, stage: str, key: str):
-        self.stages, self.stage, self.key, self.loaded = stages, stage, key, None
+        self.stages, self.stage, self.key, self.loaded, self.earlier = stages, stage, key, None, 0.0
+        self._started = time.perf_counter()
 
     def load(self) -> dict | None:
-        if self.stages.finished_stage(self.stage, self.key) is None:
+        rec = self.stages.finished_stage(self.stage, self.key)
+        if rec is None:
             return None
         state = self.stages.state(self.stage)
-        self.loaded = state.get("phase")
+        self.loaded, self.earlier = state.get("phase"), float(rec.get("seconds", 0.0))
         return state
 
     def save(self, state: dict) -> None:
         self.stages.write_state(self.stage, state)
-        self.stages.record_stage(self.stage, self.key, {"phase": state["phase"]})
+        self.stages.record_stage(self.stage, self.key, {
+            "phase": state["phase"], "seconds": self.earlier + time.perf_counter() - self._started})
 
 
 def _with_holdout(cfg, hold: int, device):

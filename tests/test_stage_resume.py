@@ -76,9 +76,13 @@ def test_a_killed_fit_resumes_to_the_same_numbers(mini, problem, tmp_path, monke
         folder = tmp_path / f"kill{at}"
         with pytest.raises(_Killed):
             _fit(mini, problem, _Stopping(folder, at))
+        spent = ReconstructionFolder(folder).finished_stage("fit_state", "key")["seconds"]
         again = _Stopping(folder)
         _same(_fit(mini, problem, again), whole)
         assert again.loaded == phases[at - 1]
+        # the killed run's seconds up to its last save carry over: a stage resumed in another call reports the
+        # time its result took (reconstruction.pipeline's timings), not the last call's share
+        assert again.earlier == spent > 0
 
 
 def test_a_tampered_or_foreign_state(mini, problem, tmp_path, monkeypatch):
