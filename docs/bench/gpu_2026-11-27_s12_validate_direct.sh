@@ -3,15 +3,8 @@
 # re-check, the CUDA tests, a mini capture's checksums, ramps 192^2; GPU1 ramps 1024^2 (stopped at the call's end,
 # resumed in phase 2); GPUs 2, 3 suite samples at 192^2. Phase 2: GPU0 issue #12's end-to-end run; GPU1 ramps 1024^2
 # resumed; GPU2 more samples at 192^2. Results in .gpu/q, packed into $OUT.
-R=$PWD
-export PYTHONPATH=$R/.gpu/site:$R/.gpu/pylib:$R PYTHONUNBUFFERED=1
-Q=$R/.gpu/q; mkdir -p $Q
 P=$1
-g() { local gpu=$1; shift
-  ( export CUDA_VISIBLE_DEVICES=$gpu WARP_CACHE_PATH=$R/.cache/warp$gpu; for c in "$@"; do eval "$c"; done; echo "done $(date +%T)" >> $Q/done$P$gpu ) > $Q/log$P$gpu.txt 2>&1 &
-}
-# V SAMPLE RES LIMIT: validate, then drop the capture (34 GB with four frames) once scored
-V() { echo "echo start $1 $2 \$(date +%T) >> $Q/times.txt; timeout $3 python -m hemicube.cli validate --rig paper --device cuda --resolution $2 --sample $1 --json --no-progress -o $Q/v_$1_$2 > $Q/v_$1_$2.json; echo end $1 $2 rc=\$? \$(date +%T) >> $Q/times.txt; [ -s $Q/v_$1_$2.json ] && rm -rf $Q/v_$1_$2/capture"; }
+source docs/bench/gpu_jobs.sh
 if [ "$P" = 1 ]; then
   g 0 "cd docs/bench && timeout 170 python peak_decode_2026-11-27.py $Q/peak_decode.json 16384 > $Q/peak_decode.out 2>&1; echo rc=\$? >> $Q/peak_decode.out; cd $R" \
       "timeout 60 python -c \"from reconstruction.pretrained import heldout_loss; print('heldout_cuda', heldout_loss('paper', 'cuda'))\" > $Q/heldout.txt 2>&1" \
