@@ -309,7 +309,9 @@ class _Checkpoint:
         if rec is None:
             return None
         state = self.stages.state(self.stage)
-        self.loaded, self.earlier = state.get("phase"), float(rec.get("seconds", 0.0))
+        spent = rec.get("seconds")  # a timing only: a record without a sound one counts from now
+        self.loaded = state.get("phase")
+        self.earlier = float(spent) if isinstance(spent, (int, float)) and np.isfinite(spent) and spent >= 0 else 0.0
         return state
 
     def save(self, state: dict) -> None:
