@@ -2,13 +2,13 @@
 and neither the texel's footprint (512^2, the cell reading) nor the photos' weight per frame moved them): the fit, the
 decoded lumitexels, or the photos' noise?
 
-    python docs/bench/fit_limits_2026-11-27.py OUT.json DEVICE RESOLUTION NOISE SAMPLE [SAMPLE ...]
+    [RIG=mini] python docs/bench/fit_limits_2026-11-27.py OUT.json DEVICE RESOLUTION NOISE SAMPLE [SAMPLE ...]
 
-For each sample, a RESOLUTION^2 texture grid over 100 mm of its true maps (paper rig, the shipped network), and the
-pipeline's fit (FitConfig with the pipeline's photo weight for four frames, lambda_lines 400; the kept lines and the
-learned-pattern photos of the primary view, the secondary view's learned-pattern photos with their own albedos; the
-joint prior on the grid) run on four sets of inputs, every measurement computed exactly at the texel centre (no
-camera, no footprint):
+For each sample, a RESOLUTION^2 texture grid over 100 mm of its true maps (the paper rig, or RIG's; its shipped
+network), and the pipeline's fit (FitConfig with the pipeline's photo weight for four frames, lambda_lines 400; the
+kept lines and the learned-pattern photos of the primary view, the secondary view's learned-pattern photos with their
+own albedos; the joint prior on the grid) run on four sets of inputs, every measurement computed exactly at the texel
+centre (no camera, no footprint):
   oracle          the exact lumitexels and the exact photos;
   noisy_photos    the exact lumitexels, the photos times (1 + NOISE x a standard normal) each (texel, photo, channel);
   decoded         the lumitexels decoded from the fine-tuned latents (the encoder's latent of the exact learned-pattern
@@ -20,6 +20,7 @@ with one frame on the mini rig, about the paper rig's at 192^2, halved by four f
 were measured, not part of the pipeline.
 """
 import json
+import os
 import sys
 import time
 
@@ -40,7 +41,7 @@ from twin.capture.plan import DEFAULT_FRAMES, default_learned
 from twin.materials.samples import load_sample
 
 out_path, dev, R, noise, names = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), sys.argv[5:]
-rig = twin.load_rig("paper")
+rig = twin.load_rig(os.environ.get("RIG", "paper"))
 model = load_network("pretrained", rig, dev)
 upper = np.flatnonzero(~np.asarray(rig.is_bottom))
 W = linear_lights(rig).weights.astype(np.float32)
@@ -50,7 +51,7 @@ grid = TextureGrid(R, 100.0)
 pos = grid.positions(rig).astype(np.float32)
 fit_cfg = FitConfig(lambda_lines=FitConfig().lambda_lines * DEFAULT_FRAMES, device=dev)
 ft_cfg = FinetuneConfig(device=dev)
-record = {"device": torch.cuda.get_device_name(0) if dev == "cuda" else "cpu", "resolution": R, "size_mm": 100.0,
+record = {"rig": rig.name, "device": torch.cuda.get_device_name(0) if dev == "cuda" else "cpu", "resolution": R, "size_mm": 100.0,
           "noise": noise, "lambda_lines": fit_cfg.lambda_lines, "samples": {}}
 
 
