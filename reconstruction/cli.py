@@ -7,6 +7,13 @@ from dataclasses import replace
 from pathlib import Path
 
 
+def _ratio(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise SystemExit(f"hemicube reconstruct: --spill-ratio takes a number > 1 or 'none', got {text!r}") from None
+
+
 def cmd_reconstruct(args) -> int:
     from .pipeline import ReconstructConfig, reconstruct
 
@@ -15,6 +22,8 @@ def cmd_reconstruct(args) -> int:
                               ("device", args.device), ("footprint", args.footprint),
                               ("finetune_photos", args.finetune_photos)) if v is not None}
     config = replace(ReconstructConfig(), **over)
+    if args.spill_ratio is not None:
+        config = replace(config, spill_ratio=None if args.spill_ratio.lower() == "none" else _ratio(args.spill_ratio))
     if args.finetune_precision is not None:
         config = replace(config, finetune=replace(config.finetune, precision=args.finetune_precision))
     r = reconstruct(args.capture, args.output, config, progress=not args.no_progress)
@@ -130,6 +139,9 @@ def register(sub) -> None:
     s.add_argument("--finetune-photos", choices=FINETUNE_PHOTOS, help="the photos fine-tuning fits: the line photos "
                    "(the paper's) or also the primary view's learned-pattern photos (default: "
                    f"{rc.finetune_photos})")
+    s.add_argument("--spill-ratio", help="refit the texels next to a highlight more than this many times brighter "
+                   "than their own from photos demosaiced by Malvar-He-Cutler 2004, or 'none' (default: "
+                   f"{rc.spill_ratio})")
     s.add_argument("--finetune-precision", choices=PRECISIONS, help="fine-tuning's matrix products on a CUDA device: "
                    "TF32 (tensor cores; within 1%% of float32's objective, measured) or float32; the CPU's are float32 "
                    f"either way (default: {rc.finetune.precision})")

@@ -13,6 +13,12 @@ photo 128 against the empty-board photo 130), as the largest centred square insi
 6.5% of the extent on every side as the reference does (so no texel straddles the sample's edge).
 
 Per photo and camera (reference §6.3, with the differences stated):
+  0. the capture's photos are the HDR merge's bilinear demosaic (twin.camera.hdr); `demosaic="malvar2004"` reads
+     each photosite's own colour back from them (a bilinear demosaic keeps it) and demosaics that mosaic by
+     Malvar-He-Cutler 2004 instead (ours, issue #14): its red and blue reach less across an edge, so a texel next
+     to a much brighter highlight takes less of it (the bilinear tent gives ~0.2 of a red or blue value to each
+     side at the mini rig's 2.2 px a texel), for more noise and false colour where the colours do not move
+     together; the pipeline reads it only for such texels (reconstruction.pipeline, ReconstructConfig.spill_ratio);
   1. flat field and colour matrix (twin.camera.correction, from the rig's calibration): camera RGB -> the
      LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
   2. the texel's footprint in the photo (`footprint`, ours; one function per method, FOOTPRINTS):
@@ -272,12 +278,18 @@ def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
 
 
 def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "point",
-            progress: bool = False) -> Measurements:
-    """Per-texel measurements of a capture (module docstring; step 2's method: `footprint`, one of FOOTPRINTS)."""
+            demosaic: str = "bilinear", progress: bool = False) -> Measurements:
+    """Per-texel measurements of a capture (module docstring; step 2's method: `footprint`, one of FOOTPRINTS;
+    step 0's `demosaic`, one of twin.camera.bayer.DEMOSAICS)."""
+    from twin.camera.bayer import DEMOSAICS, mosaic
+    from twin.camera.bayer import demosaic as demosaiced
+
     from .data import LUMITEXEL_SCALE
 
     if footprint not in FOOTPRINTS:
         raise ExtractionError(f"footprint must be one of {tuple(FOOTPRINTS)}, got {footprint!r}")
+    if demosaic not in DEMOSAICS:
+        raise ExtractionError(f"demosaic must be one of {tuple(DEMOSAICS)}, got {demosaic!r}")
     if session.rig_digest != rig.digest():
         raise ExtractionError(f"{session.dir} was captured with another rig (digest {session.rig_digest}) than "
                               f"{rig.name!r} ({rig.digest()})")
@@ -293,7 +305,11 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
     calibrations = [calibration_of(c, rig.flat_fields.get(c.name)) for c in cams]
 
     def photo(k, c):
-        return corrected(session.photo(k, c), cams[c], calibrations[c])
+        img = session.photo(k, c)
+        if demosaic != "bilinear":  # step 0: the HDR merge's bilinear demosaic keeps each photosite's own colour
+            bayer = cams[c].sensor.bayer
+            img = demosaiced(mosaic(img, bayer), bayer, method=demosaic).astype(np.float32)
+        return corrected(img, cams[c], calibrations[c])
 
     from tqdm import tqdm
 

@@ -19,8 +19,9 @@ extraction, fine-tuning): stages.json holds, per stage, the key of everything it
 content, the rig, the settings, the network) and the sha256 of its files; a stage is reused only when both match.
 Its files are hard-linked into the finished folder, and the stage folder is removed once OUT is complete.
 Fine-tuning and the fit, the long stages at the real device's scale, also keep their unfinished state there
-(finetune_state.npz and fit_state.npz, the stages "finetune_state" and "fit_state": the checkpoints of
-reconstruction.finetune.finetune and reconstruction.fitting._fit_direct), so that a killed one goes on where it stood.
+(finetune_state.npz, fit_state.npz and refit_state.npz, the stages "finetune_state", "fit_state" and "refit_state": the
+checkpoints of reconstruction.finetune.finetune and reconstruction.fitting._fit_direct, the last that of the pipeline's
+refit of the texels next to a brighter highlight), so that a killed one goes on where it stood.
 """
 from __future__ import annotations
 
@@ -43,9 +44,10 @@ MAPS = "maps"
 STAGES = "stages.json"
 FINETUNE_STATE = "finetune_state.npz"
 FIT_STATE = "fit_state.npz"
+REFIT_STATE = "refit_state.npz"
 STAGE_FILES = {"alignment": (ALIGNMENT,), "extraction": (MEASUREMENTS,), "finetune": (LATENT, LATENT_PASSES),
-               "finetune_state": (FINETUNE_STATE,), "fit_state": (FIT_STATE,)}
-PARTIAL_STAGES = ("finetune_state", "fit_state")  # a stage's unfinished state (module docstring)
+               "finetune_state": (FINETUNE_STATE,), "fit_state": (FIT_STATE,), "refit_state": (REFIT_STATE,)}
+PARTIAL_STAGES = ("finetune_state", "fit_state", "refit_state")  # a stage's unfinished state (module docstring)
 
 
 def _partial(stage: str) -> None:

@@ -9,7 +9,9 @@ to `reconstruction.validation`).
     3. decode          encoder -> 56-D latent per texel (reconstruction.latents; paper §7)
     4. fine-tuning     three passes against the line photos, one held out (reconstruction.finetune; §7.1), and
                        optionally the learned-pattern photos (ReconstructConfig.finetune_photos)
-    5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.fitting; §7.2)
+    5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.fitting; §7.2);
+                       then the texels next to a much brighter highlight fitted again from sharper photos
+                       (ReconstructConfig.spill_ratio, spill_texels; ours, issue #14)
 
 The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone). Stages 1, 2
 and 4 are kept as they finish, so a killed or failed run, started again with the same capture and settings,
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -49,6 +52,12 @@ class ReconstructConfig:
     # the reference) or "lines+learned" (and the primary view's learned-pattern photos, which light many LEDs at
     # once: they constrain directions of the latent that no line sees; docs/accuracy.md, issue #13)
     finetune_photos: str = "lines"
+    # the texels that a neighbour's much brighter highlight spills into (ours, issue #14): a texel with an 8-neighbour
+    # whose fitted specular peak mean(rho_s) / (alpha_x alpha_y) exceeds this many times its own is fitted again with
+    # its photos, in both views, demosaiced by Malvar-He-Cutler 2004 (reconstruction.extraction, step 0). The bilinear
+    # demosaic gives ~0.2 of a neighbour's red or blue light to a texel 2.2 px away (docs/accuracy.md), so from about
+    # 1 / 0.2 times the texel's own peak the spill is as large as the texel's own highlight. None: never
+    spill_ratio: float | None = 4.0
     network: str = "pretrained"    # "pretrained" (shipped for this rig) or a `hemicube train` run folder
     device: str = "cpu"
     align: AlignConfig = field(default_factory=AlignConfig)
@@ -60,6 +69,9 @@ class ReconstructConfig:
 
         if self.footprint not in FOOTPRINTS:
             raise ValueError(f"ReconstructConfig.footprint must be one of {tuple(FOOTPRINTS)}, got {self.footprint!r}")
+        if self.spill_ratio is not None and not (isinstance(self.spill_ratio, (int, float))
+                                                 and math.isfinite(self.spill_ratio) and self.spill_ratio > 1):
+            raise ValueError(f"ReconstructConfig.spill_ratio must be a number > 1 or None, got {self.spill_ratio!r}")
         if self.finetune_photos not in FINETUNE_PHOTOS:
             raise ValueError(f"ReconstructConfig.finetune_photos must be one of {FINETUNE_PHOTOS}, "
                              f"got {self.finetune_photos!r}")
@@ -149,6 +161,22 @@ def _photos(meas, learned: bool, lines=slice(None)) -> tuple[np.ndarray, np.ndar
         return photos, weights
     return (np.concatenate([photos, meas.learned_photos[:, 0]], axis=1),
             np.concatenate([weights, meas.learned_weights], axis=0))
+
+
+SPILL_DEMOSAIC = "malvar2004"  # the refit's demosaic (ReconstructConfig.spill_ratio)
+
+
+def spill_texels(fit, grid_shape, ratio: float) -> np.ndarray:
+    """(R, C) bool: the texels of a fit (reconstruction.fitting.FitResult, row-major on the grid) with an 8-neighbour
+    whose specular peak mean(rho_s) / (alpha_x alpha_y) (GGX's D at the half vector, times rho_s) exceeds `ratio`
+    times their own (ReconstructConfig.spill_ratio)."""
+    peak = (np.asarray(fit.rho_s, np.float64).mean(axis=1)
+            / (np.asarray(fit.alpha_x, np.float64) * np.asarray(fit.alpha_y, np.float64))).reshape(grid_shape)
+    R, C = peak.shape
+    padded = np.pad(peak, 1)  # zeros beyond the grid: no neighbour there
+    brightest = np.max([padded[1 + dr:1 + dr + R, 1 + dc:1 + dc + C]
+                        for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc], axis=0)
+    return brightest > ratio * peak
 
 
 def _key(*parts) -> str:
@@ -278,6 +306,24 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     timings["fitting_s"] = time.perf_counter() - t + checkpoint.earlier
     if checkpoint.loaded is not None:
         resumed.append(f"fitting ({checkpoint.loaded})")
+    # the refit is a whole fit, initial candidates included: started from the first fit's numbers instead, paper's
+    # flat alpha landscape kept its texels in the first fit's basins (alpha 11.5 / 12.9% against 8.5 / 9.2%,
+    # docs/accuracy.md)
+    spill = np.zeros(grid.shape, bool) if config.spill_ratio is None else spill_texels(fit, grid.shape,
+                                                                                       config.spill_ratio)
+    if spill.any():
+        t = stage(f"refit of {int(spill.sum())} texels next to a brighter highlight ({SPILL_DEMOSAIC} photos)")
+        sharp = extract(session, rig, grid, alignment, footprint=config.footprint, demosaic=SPILL_DEMOSAIC)
+        on = spill.reshape(-1, 1, 1)
+        photos = np.where(on, _photos(sharp, True, keep)[0], photos)
+        secondary = np.where(on, sharp.learned_photos[:, 1], meas.learned_photos[:, 1])
+        checkpoint = _Checkpoint(stages, "refit_state", _key(key, asdict(fit_cfg), config.spill_ratio))
+        fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
+                      secondary=(secondary, meas.learned_weights), grid_shape=grid.shape,
+                      config=fit_cfg, checkpoint=checkpoint if fit_cfg.method == "direct" else None)
+        timings["refit_s"] = time.perf_counter() - t + checkpoint.earlier
+        if checkpoint.loaded is not None:
+            resumed.append(f"refit ({checkpoint.loaded})")
     maps = to_maps(fit, grid.shape, grid.size_mm, meas.transparency.reshape(grid.shape),
                    name=f"reconstruction of {session.sample}")
     out.write_maps(maps)
@@ -285,7 +331,8 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     summary = {"capture": str(session.dir),
                "rig": rig.name, "rig_digest": rig.digest(), "config": _jsonable(asdict(config)),
                "grid": {"resolution": grid.resolution, "size_mm": grid.size_mm},
-               "texels": int(meas.valid.size), "holdout_line": hold, "timings_s": timings,
+               "texels": int(meas.valid.size), "holdout_line": hold, "spill_texels": int(spill.sum()),
+               "timings_s": timings,
                "finetune": _jsonable(ft_info), "resumed": resumed,
                "fit": _jsonable({k: v for k, v in fit.info.items() if k != "texel_loss"}),
                "alignment": _jsonable(alignment.info)}

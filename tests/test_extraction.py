@@ -82,16 +82,22 @@ def test_learned_measurements_match_the_true_maps(extracted, mini):
     assert np.median(rel[:, 0]) < 0.02 and np.median(rel[:, 1]) < 0.02, np.median(rel, axis=(0, 2))
 
 
-def test_line_measurements_and_transparency_match_the_true_maps(extracted, mini):
+def _line_errors(cap, rig, grid, meas) -> np.ndarray:
+    """Each line measurement's error against the exact one of the true maps, relative to its texel's largest."""
     from reconstruction.data import LUMITEXEL_SCALE
 
-    cap, grid, meas = extracted
-    p, beta = _true_params(cap, mini, grid)
-    w = np.zeros((64, mini.num_leds, 3), np.float32)
-    w[:, ~mini.is_bottom] = meas.line_weights
-    exact = twin.measurements(mini, **p, patterns=w, transparency=np.zeros(len(meas.valid)), camera="primary",
+    p, _ = _true_params(cap, rig, grid)
+    w = np.zeros((64, rig.num_leds, 3), np.float32)
+    w[:, ~rig.is_bottom] = meas.line_weights
+    exact = twin.measurements(rig, **p, patterns=w, transparency=np.zeros(len(meas.valid)), camera="primary",
                               visibility=True) * LUMITEXEL_SCALE
-    rel = np.abs(meas.lines - exact) / np.abs(exact).max(axis=(1, 2), keepdims=True)
+    return np.abs(meas.lines - exact) / np.abs(exact).max(axis=(1, 2), keepdims=True)
+
+
+def test_line_measurements_and_transparency_match_the_true_maps(extracted, mini):
+    cap, grid, meas = extracted
+    _, beta = _true_params(cap, mini, grid)
+    rel = _line_errors(cap, mini, grid, meas)
     assert np.median(rel) < 0.02, np.median(rel)
     # ramps has a beta ramp in one region, opaque elsewhere; texels straddling the ramp's steps mix values
     err = np.abs(meas.transparency - beta)
@@ -249,3 +255,48 @@ def test_taps_once_sample_as_bilinear_does():
         assert np.array_equal(got, bilinear(img, x, y), equal_nan=True)
     with pytest.raises(ValueError, match="taps for an image"):
         bilinear_at(np.zeros((31, 40, 3)), taps)
+
+
+def test_malvar2004_photos_are_read_from_the_captured_mosaic(extracted, mini):
+    """Step 0: a captured photo is the HDR merge's bilinear demosaic of its mosaic, which keeps each photosite's own
+    colour, so the mosaic read back from it and demosaiced bilinearly again gives the photo to float32 rounding; the
+    Malvar-He-Cutler measurements of ramps (smooth, no edge for the two to differ at) then match the exact ones as the
+    bilinear ones do (test_line_measurements_and_transparency_match_the_true_maps: median 2% of a texel's largest)."""
+    from twin.camera.bayer import demosaic, mosaic
+
+    cap, grid, meas = extracted
+    bayer = mini.camera("primary").sensor.bayer
+    img = cap.photo(0, 0)
+    np.testing.assert_allclose(demosaic(mosaic(img, bayer), bayer), img, rtol=1e-6, atol=0)
+    sharp = extract(cap, mini, grid, _ExactAlignment(mini), demosaic="malvar2004")
+    rel = _line_errors(cap, mini, grid, sharp)
+    assert sharp.valid.all() and np.median(rel) < 0.02, np.median(rel)
+    assert not np.array_equal(sharp.lines, meas.lines)  # another demosaic, not the bilinear photos again
+    with pytest.raises(ExtractionError, match="demosaic must be one of"):
+        extract(cap, mini, grid, _ExactAlignment(mini), demosaic="vng")
+
+
+def test_spill_texels_are_the_neighbours_of_a_much_brighter_highlight():
+    """ReconstructConfig.spill_ratio's texels: every 8-neighbour of a texel whose specular peak rho_s / (alpha_x
+    alpha_y) is more than `ratio` times theirs, and no other (the bright texel itself, a uniform field, a neighbour
+    just under the ratio)."""
+    from reconstruction.fitting import FitResult
+    from reconstruction.pipeline import ReconstructConfig, spill_texels
+
+    R, C = 6, 7
+    n = R * C
+    alpha = np.full(n, 0.5, np.float32)
+    rho_s = np.full((n, 3), 0.2, np.float32)
+    fit = lambda a, s: FitResult(np.zeros((n, 3)), np.zeros((n, 3)), a, a, np.zeros((n, 3)), s)
+    assert not spill_texels(fit(alpha, rho_s), (R, C), 4.0).any()
+    a = alpha.copy()
+    a[2 * C + 3] = 0.2  # peak 0.2 / 0.04 = 5, against 0.2 / 0.25 = 0.8 around it: 6.25 times
+    got = spill_texels(fit(a, rho_s), (R, C), 4.0)
+    want = np.zeros((R, C), bool)
+    want[1:4, 2:5] = True
+    want[2, 3] = False
+    np.testing.assert_array_equal(got, want)
+    assert not spill_texels(fit(a, rho_s), (R, C), 6.5).any()
+    with pytest.raises(ValueError, match="spill_ratio must be a number > 1 or None"):
+        ReconstructConfig(spill_ratio=0.5)
+    assert ReconstructConfig(spill_ratio=None).spill_ratio is None

@@ -177,3 +177,40 @@ def test_fine_tuning_on_the_learned_photos_too(validate_dir, run_a, tmp_path, mo
     assert misfit(both) < 0.8 * misfit(lines)  # 101 against 143 (2026-11-27)
     with pytest.raises(ValueError, match="finetune_photos must be one of"):
         ReconstructConfig(finetune_photos="learned")
+
+
+# the CLI with the second fit (the refit of the texels next to a brighter highlight, ReconstructConfig.spill_ratio)
+# made to wait after leaving a mark, so that a kill lands in it, after the first fit finished
+WAITING_REFIT = ("import sys, time; from pathlib import Path; import reconstruction.fitting as f; real = f.fit_ggx; "
+                 "calls = []\n"
+                 "def fit(*a, **k):\n"
+                 "    calls.append(1)\n"
+                 "    if len(calls) == 1:\n"
+                 "        return real(*a, **k)\n"
+                 "    Path(sys.argv[1]).write_text('refit'); time.sleep(3600)\n"
+                 "f.fit_ggx = fit\n"
+                 "from hemicube.cli import main; sys.exit(main(sys.argv[2:]))")
+
+
+def test_killed_while_refitting_resumes_and_gives_the_same_bytes(validate_dir, run_a, tmp_path):
+    """A run killed in the refit goes on from the first fit's checkpoint (it does not start the fit over) and ends
+    with the uninterrupted run's bytes; its summary counts the refitted texels."""
+    assert ReconstructionFolder(run_a).summary()["spill_texels"] > 0, "ramps at 12^2 must have texels to refit"
+    out, mark = tmp_path / "G", tmp_path / "refit.mark"
+    proc = subprocess.Popen([sys.executable, "-c", WAITING_REFIT, str(mark), "reconstruct", str(validate_dir / "capture"),
+                             "-o", str(out), "--resolution", "12", "--no-progress"],
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and not mark.exists() and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert mark.exists(), "the kill must land in the refit"
+    assert {"alignment", "extraction", "finetune", "fit_state"} <= _stage_names(stages_folder(out))
+    recon = reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
+    summary = ReconstructionFolder(out).summary()
+    assert summary["resumed"][:3] == ["alignment", "extraction", "finetune"]
+    assert summary["resumed"][3].startswith("fitting (")  # the first fit's checkpoint, not a fit from the start
+    assert summary["spill_texels"] == ReconstructionFolder(run_a).summary()["spill_texels"]
+    assert recon.timings["refit_s"] > 0 and _files(out) == _files(run_a)

@@ -93,7 +93,7 @@ def fit(mode):
     if mode.startswith("swap_"):
         _, which, views = mode.split("_")
         sel = {"all": np.ones_like(stock), "d1": dist == 1, "d12": (dist >= 1) & (dist <= 2),
-               "not1": dist != 1}[which].reshape(-1)
+               "not1": dist != 1, "d14": (dist >= 1) & (dist <= 4)}[which].reshape(-1)
         if "p" in views:
             lines[sel] = ex_p[sel]
         if "s" in views:

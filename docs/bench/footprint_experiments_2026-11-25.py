@@ -78,10 +78,10 @@ if __name__ == "__main__":
     import torch; torch.set_num_threads(1)
     if "mhc" in mode:
         patch()
-    if "x4" in mode:
-        import twin.capture.runner as run
-        orig = run.bracket_exposures
-        run.bracket_exposures = lambda L, sensor: [t for t in orig(L, sensor) for _ in range(4)]
+    frames = None  # the capture's default (four since 2026-11-27)
+    if "x4" in mode:  # four times the default
+        from twin.capture.plan import DEFAULT_FRAMES
+        frames = 4 * DEFAULT_FRAMES
     if "cell" in mode:
         import dataclasses
         import reconstruction.extraction as ex
@@ -280,6 +280,7 @@ if __name__ == "__main__":
     import twin
     from hemicube.validate import end_to_end
     t = time.time()
-    metrics, rows, _ = end_to_end(twin.load_rig("mini"), sample, "cpu", outdir, None, 1, False)
+    metrics, rows, _ = end_to_end(twin.load_rig("mini"), sample, "cpu", outdir, None, 1, False,
+                                  **({} if frames is None else {"frames": frames}))
     print(json.dumps({"sample": sample, "mode": mode, "s": time.time() - t,
                       "rows": [(r["metric"], round(float(r["value"]), 4), r["passed"]) for r in rows]}))
