@@ -27,48 +27,19 @@ the ink and foil. Prints one JSON line a mode. A record of how the numbers were 
 """
 import json
 import os
-import pickle
 import sys
-from dataclasses import replace
 
 import numpy as np
 import torch
-from scipy import ndimage
 
-import twin
 import reconstruction.fitting as fitting
-from reconstruction.data import LUMITEXEL_SCALE
-from reconstruction.extraction import TextureGrid
-from reconstruction.metrics import map_errors, resample_maps, truth_coverage
-from reconstruction.validation import _map_params
-from twin.capture.session import CaptureSession
+from paper_edges import Edges
 
 torch.set_num_threads(int(os.environ.get("THREADS", "1")))
 dump, cap, modes = sys.argv[1], sys.argv[2], sys.argv[3:]
-d = pickle.load(open(dump, "rb"))
-rig = twin.load_rig("mini")
-grid = TextureGrid(*d["grid"])
-R = grid.resolution
-true_maps = CaptureSession.open(cap).ground_truth_maps()
-truth = resample_maps(true_maps, grid.size_mm, R)
-mask = truth_coverage(true_maps, grid.size_mm, R)
-stock = truth.alpha[..., 0] > 0.3
-dist = ndimage.distance_transform_cdt(stock, metric="chessboard")
-CLASSES = {"d0": ~stock, "d1": dist == 1, "d2": dist == 2, "d3-4": (dist >= 3) & (dist <= 4), "d5+": dist >= 5}
-
-upper = np.flatnonzero(~np.asarray(rig.is_bottom))
-
-
-def exact(weights_upper, camera):
-    W = np.zeros((weights_upper.shape[0], len(rig.is_bottom), 3), np.float32)
-    W[:, upper] = weights_upper
-    return twin.measurements(rig, d["positions"].astype(np.float32), patterns=W, camera=camera, convention="physical",
-                             visibility=True, device="cpu", transparency=np.zeros(len(d["positions"])),
-                             **_map_params(truth)) * np.float32(LUMITEXEL_SCALE)
-
-
-cams = list(rig.cameras)[:2]
-ex_p, ex_s = exact(d["line_weights"], cams[0]), exact(d["secondary"][1], cams[1])
+E_ = Edges(dump, cap)
+d, stock, dist, CLASSES, cams = E_.d, E_.stock, E_.dist, E_.classes, E_.cams
+ex_p, ex_s = E_.exact(d["line_weights"], cams[0]), E_.exact(d["secondary"][1], cams[1])
 nl = 63  # the kept line photos come first in the primary group
 
 
@@ -113,16 +84,9 @@ def fit(mode):
         raise SystemExit(f"unknown mode {mode!r}")
     if hasattr(fitting, "_ANISO"):
         fitting._ANISO[0], fitting._ISO_START[0] = float(os.environ.get("ANISO", "1")), os.environ.get("ISO") == "1"
-    cfg = replace(d["config"], lambda_lines=400.0, alpha_prior=float(os.environ.get("TAU", "0.1")))
-    res = fitting.fit_ggx(rig, d["positions"], d["lumitexels"], lines=lines, line_weights=d["line_weights"],
-                          secondary=(sec, d["secondary"][1]), grid_shape=d["grid_shape"], config=cfg)
-    maps = fitting.to_maps(res, (R, R), grid.size_mm)
-    m = map_errors(truth, maps, mask=mask)
-    ex = np.abs(maps.alpha / truth.alpha - 1) * 100
-    signed = np.log(maps.alpha / truth.alpha).mean(-1)  # mean log ratio of the two axes
-    by = {k: {"n": int(s.sum()), "alpha_x_pct": round(float(np.median(ex[..., 0][s])), 2),
-              "alpha_y_pct": round(float(np.median(ex[..., 1][s])), 2),
-              "log_alpha_bias": round(float(np.median(signed[s])), 3)} for k, s in CLASSES.items()}
+    _, maps, m = E_.fit(lines, sec, alpha_prior=float(os.environ.get("TAU", "0.1")))
+    by = {k: {"n": int(CLASSES[k].sum()), "alpha_x_pct": ax, "alpha_y_pct": ay, "log_alpha_bias": bias}
+          for k, (ax, ay, bias) in E_.by_class(maps, 2).items()}
     if hasattr(fitting, "_DATA_WEIGHT"):
         fitting._DATA_WEIGHT[0], fitting._TW[0] = None, None
     return {**{k: round(m[k]["median"], 3) for k in ("alpha_x_pct", "alpha_y_pct", "rho_d_pct", "rho_s_pct",

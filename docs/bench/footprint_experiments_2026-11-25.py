@@ -4,8 +4,8 @@
 
 runs `hemicube validate`'s end-to-end function (mini rig, capture seed 1, CPU) on SAMPLE in one process with the
 stages MODE names replaced, and prints the goal rows as JSON. MODE holds any of:
-    mhc    the HDR merge's demosaic replaced by Malvar-He-Cutler 2004 (5x5 kernels; equal to colour-demosaicing's
-           demosaicing_CFA_Bayer_Malvar2004 away from the 2-pixel border)
+    mhc    the HDR merge's demosaic replaced by Malvar-He-Cutler 2004 (twin.camera.bayer.malvar2004 since the
+           fifteenth session; the script's own copy of the kernels, which it replaced, agreed with it to 4e-16)
     x4     every exposure of the bracket taken 4 times (the merge averages them; since 2026-11-27 the capture's
            default is four, so x4 now makes 16)
     cell   each texel's photos the mean of 3 x 3 samples at +-1/3 texel
@@ -21,32 +21,6 @@ A record of how the numbers were measured, not part of the pipeline.
 import os, sys, json, time
 from pathlib import Path
 import numpy as np
-from scipy.ndimage import correlate
-
-def mhc(mos, cfa):
-    # cfa: 2x2 table of channel index at (i%2, j%2)
-    H, W = mos.shape
-    ch = np.asarray(cfa)[np.arange(H)[:, None] % 2, np.arange(W)[None, :] % 2]
-    k = lambda a: np.asarray(a, float) / 8.0
-    G_at_RB = k([[0,0,-1,0,0],[0,0,2,0,0],[-1,2,4,2,-1],[0,0,2,0,0],[0,0,-1,0,0]])
-    RB_at_G_row = k([[0,0,.5,0,0],[0,-1,0,-1,0],[-1,4,5,4,-1],[0,-1,0,-1,0],[0,0,.5,0,0]])
-    RB_at_G_col = RB_at_G_row.T
-    RB_at_BR = k([[0,0,-1.5,0,0],[0,2,0,2,0],[-1.5,0,6,0,-1.5],[0,2,0,2,0],[0,0,-1.5,0,0]])
-    f = lambda kk: correlate(mos, kk, mode="mirror")
-    g_rb, rb_row, rb_col, rb_br = f(G_at_RB), f(RB_at_G_row), f(RB_at_G_col), f(RB_at_BR)
-    out = np.zeros((H, W, 3))
-    # row has R? for each row, which non-green channel lives in it
-    row_ch = np.where((ch == 0).any(axis=1), 0, 2)[:, None] * np.ones((1, W), int)
-    for c in (0, 2):
-        o = np.where(ch == c, mos, 0.0)
-        other = 2 - c
-        o = np.where(ch == other, rb_br, o)
-        g = ch == 1
-        o = np.where(g & (row_ch == c), rb_row, o)
-        o = np.where(g & (row_ch != c), rb_col, o)
-        out[..., c] = o
-    out[..., 1] = np.where(ch == 1, mos, g_rb)
-    return out
 
 def pixel_cells(rig, grid, cam):
     """(H, W) row and column of the texel cell each pixel's ray meets on the sample plane (unclipped, float)."""
@@ -63,12 +37,12 @@ def pixel_cells(rig, grid, cam):
 def patch():
     import warp as wp
     import twin.camera.hdr as hdr
-    from twin.camera.bayer import cfa_table
+    from twin.camera.bayer import malvar2004
     orig = hdr.merge_hdr_device
     def merged(raws, exposures_s, sensor, gain_db=0.0, margin=hdr.DEFAULT_MARGIN):
         out = orig(raws, exposures_s, sensor, gain_db, margin)
         mos = out["mosaic"].numpy()
-        rgb = mhc(mos, cfa_table(sensor.bayer)).astype(np.float32)
+        rgb = malvar2004(mos, sensor.bayer).astype(np.float32)
         out["radiance"] = wp.array(rgb, dtype=wp.vec3f, device=raws.device)
         return out
     hdr.merge_hdr_device = merged
@@ -224,13 +198,12 @@ if __name__ == "__main__":
         # Z standard deviations of that difference, computed exactly from the HDR merge's per-photosite variance
         # (1 / weights_sum of the stored raw frames, merged again)
         from twin.capture.session import CaptureSession, photo_stem
-        from twin.camera.bayer import cfa_table, demosaic
+        from twin.camera.bayer import demosaic, malvar2004
         from twin.camera.hdr import merge_hdr_numpy
         import twin as _tw
         Z = 3.0
         sensor = _tw.load_rig("mini").camera(next(iter(_tw.load_rig("mini").cameras))).sensor
-        cfa = cfa_table(sensor.bayer)
-        op = lambda m: mhc(m, cfa) - demosaic(m, sensor.bayer)
+        op = lambda m: malvar2004(m, sensor.bayer) - demosaic(m, sensor.bayer)
         orig_photo = CaptureSession.photo
         stats = []
         def photo(self, k, c):
@@ -259,13 +232,13 @@ if __name__ == "__main__":
         # per pixel and colour: the bilinear value unless it differs from the Malvar-He-Cutler value by more than
         # Z robust standard deviations (1.4826 MAD over the photo) of that difference
         import reconstruction.extraction as ex
-        from twin.camera.bayer import cfa_index, cfa_table
+        from twin.camera.bayer import cfa_index, malvar2004
         Z = 3.0
         orig_corrected = ex.corrected
         def corrected(img, camera, calibration=None):
             ch = cfa_index(camera.sensor.bayer, camera.height, camera.width)
             mos = np.take_along_axis(img.astype(np.float64), ch[..., None], 2)[..., 0]
-            sharp = mhc(mos, cfa_table(camera.sensor.bayer))
+            sharp = malvar2004(mos, camera.sensor.bayer)
             d = sharp - img
             if "loc" in mode:  # shot noise: the difference's sd grows as the square root of the signal
                 level = np.sqrt(np.maximum(img, 1e-3 * img.max()))

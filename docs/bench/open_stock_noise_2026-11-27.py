@@ -6,27 +6,17 @@ texels along the grid's rows and columns, per view (each texel's own gain divide
 
 DUMP and CAPTURE as in docs/bench/edge_breakdown_2026-11-27.py. A record of how the numbers were measured.
 """
-import pickle, sys, numpy as np, torch
-from scipy import ndimage
+import sys
+
+import numpy as np
+import torch
+
+from paper_edges import Edges
+
 torch.set_num_threads(1)
-import twin
-from reconstruction.data import LUMITEXEL_SCALE
-from reconstruction.extraction import TextureGrid
-from reconstruction.metrics import resample_maps
-from reconstruction.validation import _map_params
-from twin.capture.session import CaptureSession
-dump, cap = sys.argv[1], sys.argv[2]
-d = pickle.load(open(dump, "rb")); rig = twin.load_rig("mini")
-grid = TextureGrid(*d["grid"]); R = grid.resolution
-truth = resample_maps(CaptureSession.open(cap).ground_truth_maps(), grid.size_mm, R)
-stock = truth.alpha[..., 0] > 0.3
-dist = ndimage.distance_transform_cdt(stock, metric="chessboard").reshape(-1)
-upper = np.flatnonzero(~np.asarray(rig.is_bottom))
-def exact(wu, camera):
-    W = np.zeros((wu.shape[0], len(rig.is_bottom), 3), np.float32); W[:, upper] = wu
-    return twin.measurements(rig, d["positions"].astype(np.float32), patterns=W, camera=camera, convention="physical",
-                             visibility=True, device="cpu", transparency=np.zeros(len(d["positions"])), **_map_params(truth)) * np.float32(LUMITEXEL_SCALE)
-cams = list(rig.cameras)[:2]
+E_ = Edges(sys.argv[1], sys.argv[2])
+d, R, cams, exact = E_.d, E_.R, E_.cams, E_.exact
+dist = E_.dist.reshape(-1)
 sel = dist >= 5
 for label, M, wu, cam in (("primary", d["lines"], d["line_weights"], cams[0]), ("secondary", d["secondary"][0], d["secondary"][1], cams[1])):
     E = exact(wu, cam)

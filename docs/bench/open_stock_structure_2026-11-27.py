@@ -9,29 +9,22 @@ specular fraction and level, a split-half estimate of the structure common to th
 random halves' per-photo medians), the specular fraction's size and spread over the photos, and the correlation of
 the primary view's per-photo error with its exposures. A record of how the numbers were measured.
 """
-import os, pickle, sys, json
-import numpy as np, torch
-from scipy import ndimage
+import json
+import os
+import sys
+
+import numpy as np
+import torch
+
+from paper_edges import Edges
+from twin.capture.plan import indices_of
+from twin.capture.session import CaptureSession, photo_stem
+
 torch.set_num_threads(1)
-import twin
-from reconstruction.data import LUMITEXEL_SCALE
-from reconstruction.extraction import TextureGrid
-from reconstruction.metrics import resample_maps
-from reconstruction.validation import _map_params
-from twin.capture.session import CaptureSession
 dump, cap = sys.argv[1], sys.argv[2]
-d = pickle.load(open(dump, "rb")); rig = twin.load_rig("mini")
-grid = TextureGrid(*d["grid"]); R = grid.resolution
-truth = resample_maps(CaptureSession.open(cap).ground_truth_maps(), grid.size_mm, R)
-stock = truth.alpha[..., 0] > 0.3
-dist = ndimage.distance_transform_cdt(stock, metric="chessboard").reshape(-1)
-upper = np.flatnonzero(~np.asarray(rig.is_bottom))
-def exact(wu, camera, **over):
-    W = np.zeros((wu.shape[0], len(rig.is_bottom), 3), np.float32); W[:, upper] = wu
-    p = _map_params(truth); p.update(over)
-    return twin.measurements(rig, d["positions"].astype(np.float32), patterns=W, camera=camera, convention="physical",
-                             visibility=True, device="cpu", transparency=np.zeros(len(d["positions"])), **p) * np.float32(LUMITEXEL_SCALE)
-cams = list(rig.cameras)[:2]
+E_ = Edges(dump, cap)
+d, cams, exact = E_.d, E_.cams, E_.exact
+dist = E_.dist.reshape(-1)
 n = len(d["positions"])
 for label, M, wu, cam in (("primary", d["lines"], d["line_weights"], cams[0]), ("secondary", d["secondary"][0], d["secondary"][1], cams[1])):
     E = exact(wu, cam)
@@ -59,13 +52,10 @@ for label, M, wu, cam in (("primary", d["lines"], d["line_weights"], cams[0]), (
     o = np.argsort(-fr.mean(1))[:8]
     print("  top spec photos dev %:", [round(float(med[k].mean()*100), 3) for k in o], "frac", [round(float(fr[k].mean()), 3) for k in o])
 sess = CaptureSession.open(cap)
-import json as _j
-recon = _j.load(open(os.path.dirname(cap) + "/reconstruction/reconstruction.json"))
+recon = json.load(open(os.path.dirname(cap) + "/reconstruction/reconstruction.json"))
 h = recon["holdout_line"]
-from twin.capture.plan import indices_of
 ix = indices_of(sess)
 order = [ix.lines[k] for k in range(64) if k != h] + list(ix.learned)
-from twin.capture.session import photo_stem
 exps = np.array([sess.photos[photo_stem(k, 0)]["exposures_s"] for k in order])  # (K, frames)
 E = exact(d["line_weights"], cams[0]); sel = dist >= 5
 r = d["lines"][sel] / E[sel] - 1

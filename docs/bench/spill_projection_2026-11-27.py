@@ -14,43 +14,32 @@ MODE=each: one column per such neighbour; sum: their sum as one column. Prints t
 the stock texel's distance to ink or foil ([alpha_x %, alpha_y %, median log alpha ratio]). A record of how the
 numbers were measured, not part of the pipeline.
 """
-import json, os, pickle, sys
-from dataclasses import replace
-import numpy as np, torch
-from scipy import ndimage
-import twin
+import json
+import os
+import sys
+import time
+
+import torch
+
 import reconstruction.fitting as fitting
-from reconstruction.extraction import TextureGrid
-from reconstruction.metrics import map_errors, resample_maps, truth_coverage
-from twin.capture.session import CaptureSession
+from paper_edges import Edges
 
 torch.set_num_threads(int(os.environ.get("THREADS", "1")))
 dump, cap = sys.argv[1], sys.argv[2]
 RATIO = float(os.environ.get("RATIO", "4"))
-d = pickle.load(open(dump, "rb"))
-rig = twin.load_rig("mini")
-grid = TextureGrid(*d["grid"]); R = grid.resolution
-true_maps = CaptureSession.open(cap).ground_truth_maps()
-truth = resample_maps(true_maps, grid.size_mm, R)
-mask = truth_coverage(true_maps, grid.size_mm, R)
-stock = truth.alpha[..., 0] > 0.3
-dist = ndimage.distance_transform_cdt(stock, metric="chessboard")
-CLASSES = {"d0": ~stock, "d1": dist == 1, "d2": dist == 2, "d3-4": (dist >= 3) & (dist <= 4), "d5+": dist >= 5}
-cfg = replace(d["config"], lambda_lines=400.0)
+E_ = Edges(dump, cap)
+R = E_.R
+
 
 def run():
-    res = fitting.fit_ggx(rig, d["positions"], d["lumitexels"], lines=d["lines"], line_weights=d["line_weights"],
-                          secondary=(d["secondary"][0], d["secondary"][1]), grid_shape=d["grid_shape"], config=cfg)
-    maps = fitting.to_maps(res, (R, R), grid.size_mm)
-    m = map_errors(truth, maps, mask=mask)
-    ex = np.abs(maps.alpha / truth.alpha - 1) * 100
-    signed = np.log(maps.alpha / truth.alpha).mean(-1)
-    by = {k: [round(float(np.median(ex[..., 0][s])), 2), round(float(np.median(ex[..., 1][s])), 2),
-              round(float(np.median(signed[s])), 3)] for k, s in CLASSES.items()}
+    res, maps, m = E_.fit()
+    tangent = m.get("tangent_deg")
     return res, {**{k: round(m[k]["median"], 3) for k in ("alpha_x_pct", "alpha_y_pct", "rho_d_pct", "rho_s_pct",
-                                                          "normal_deg")}, "tangent": round(m.get("tangent_deg", {}).get("median", float("nan")), 3) if isinstance(m.get("tangent_deg"), dict) else None, "by": by}
+                                                          "normal_deg")},
+                 "tangent": round(tangent.get("median", float("nan")), 3) if isinstance(tangent, dict) else None,
+                 "by": E_.by_class(maps, 2)}
 
-import time
+
 t=time.time()
 res1, s1 = run()
 print(json.dumps({"dump": os.path.basename(dump), "pass": 1, "s": round(time.time()-t,1), **s1}), flush=True)
