@@ -11,6 +11,7 @@ TORCH_SPEC ?= torch==2.13.0
 # The tests run in one process per core (pytest-xdist, at most 4), a test file per process: the Warp CPU kernels
 # are single-threaded, so one process leaves the other cores of CI's two idle. PYTEST_WORKERS= runs them in one.
 PYTEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile
+# --durations: the 25 slowest tests end every log, CI's included (what its 20 minutes go to: docs/performance.md)
 
 export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
@@ -32,4 +33,4 @@ validate: setup
 	$(BIN)/hemicube validate
 
 test: setup
-	$(BIN)/python -m pytest -q $(PYTEST_WORKERS) $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q --durations=25 $(PYTEST_WORKERS) $(PYTEST_ARGS)
