@@ -21,10 +21,10 @@ GOAL_PX = 0.5  # issue #6: median alignment error <= 0.5 px
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-@pytest.fixture(scope="module")
-def mini_uniform():
-    """The two uniform-light photos (k = 129) of a mini-rig capture of the ramps sample (seed 1), taken by
-    twin.capture.runner's photo loop (only these two photos, to stay fast), with the sidecars."""
+def _uniform_pair(seed: int):
+    """The two uniform-light photos (k = 129) of a mini-rig capture of the ramps sample (the main job's) at capture
+    seed `seed`, taken by twin.capture.runner's photo loop (only these two photos, to stay fast), with the
+    sidecars: the same photos as a whole capture at that seed."""
     from twin.capture.plan import build_patterns, paper_plan
     from twin.capture.runner import open_backends, photos
     from twin.materials.samples import load_sample
@@ -32,11 +32,16 @@ def mini_uniform():
     rig = twin.load_rig("mini")
     patterns = build_patterns(rig)
     todo = [p for p in paper_plan(rig, patterns) if p.pattern == "uniform"]
-    with open_backends(rig, load_sample("ramps", resolution=128), "sim", 1, "cpu") as sims:
+    with open_backends(rig, load_sample("ramps", resolution=128), "sim", seed, "cpu") as sims:
         shots = {photo.camera: hdr["radiance"].numpy() for photo, _, hdr, _ in photos(rig, sims, patterns, todo,
                                                                                       "cpu")}
         truth = {cam: sims["sample"].surfaces(cam).pixel_texel().astype(np.float32) for cam in shots}
     return rig, shots, truth
+
+
+@pytest.fixture(scope="module")
+def mini_uniform():
+    return _uniform_pair(1)
 
 
 def _align(mini_uniform, **kw):
@@ -56,6 +61,20 @@ def test_default_config_meets_the_goal_on_a_mini_capture(mini_uniform):
     # dense step is what reaches the goal
     _, coarse = _align(mini_uniform, dense=False)
     assert coarse["median_px"] > 2 * err["median_px"], (coarse, err)
+
+
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_default_config_meets_the_goal_at_other_capture_seeds(seed):
+    """The goal holds over the photos' noise draws, not at CI's seed alone. Before the refit's information cap
+    (AlignConfig.information_cap) these seeds missed it (0.54, 0.56, 0.64 px: a minority of confident matches on
+    the glossy ramps, whose shading differs between the views, moved the refitted plane by ~0.5 px; at seed 4 the
+    uncapped refit still does: the test sees the failure it guards against)."""
+    pair = _uniform_pair(seed)
+    _, err = _align(pair)
+    assert err["median_px"] <= GOAL_PX / 2 and err["p90_px"] <= GOAL_PX, err
+    if seed == 4:
+        _, uncapped = _align(pair, information_cap=None)
+        assert uncapped["median_px"] > GOAL_PX, uncapped
 
 
 def test_calibrated_homography_is_exact_and_warp_follows_the_map(mini_uniform):
@@ -284,3 +303,5 @@ def test_bad_input_is_refused_clearly(mini_uniform):
         AlignConfig(coarse="artag")
     with pytest.raises(ValueError, match="patch must be a positive odd"):
         AlignConfig(patch=6)
+    with pytest.raises(ValueError, match=r"information_cap must be a percentile in \(0, 100\] or None"):
+        AlignConfig(information_cap=0)

@@ -20,7 +20,7 @@ import pytest
 
 import twin
 import hemicube.cli
-from twin.capture.plan import DEFAULT_FRAMES, CaptureError
+from twin.capture.plan import DEFAULT_FRAMES, CaptureError, bracket_frames, exposure_frames, frames_per_photo
 from twin.capture.runner import capture
 from twin.capture.session import CaptureSession, verify
 
@@ -57,7 +57,9 @@ def test_session_folder(run_a):
     hdr = read_rgb_exr(Path(run_a) / "img00129_cam00.exr")  # uniform light
     assert hdr.shape == (cam.height, cam.width, 3) and np.all(np.isfinite(hdr)) and hdr.max() > 0
     rec = m["photos"]["img00129_cam00"]
-    assert len(rec["exposures_s"]) == 3 * DEFAULT_FRAMES and len(set(rec["exposures_s"])) == 3
+    ts = rec["exposures_s"]  # the bracket's 3 exposures ascending, the shortest taken twice as often
+    assert exposure_frames(DEFAULT_FRAMES) == [8, 4, 4] and len(ts) == frames_per_photo(DEFAULT_FRAMES) == 16
+    assert ts == sorted(ts) and ts == bracket_frames([ts[0], ts[8], ts[12]], DEFAULT_FRAMES)
     raw = unpack_bayer_rg12p((Path(run_a) / rec["files"][0]).read_bytes(), cam.height, cam.width)
     assert raw.dtype == np.uint16 and raw.max() <= 4095 and raw.max() > raw.min()
     gt = np.load(Path(run_a) / "ground_truth" / "pixel_texel_cam00.npy")
@@ -102,7 +104,7 @@ def test_kill_and_resume_is_byte_identical(run_a, tmp_path):
     a = _manifest(run_a)["files"]
     raw_a = {k: v for k, v in a.items() if k.startswith("raw/")}
     raw_b = {k: v for k, v in after["files"].items() if k.startswith("raw/")}
-    assert raw_a == raw_b and len(raw_a) == 196 * 3 * DEFAULT_FRAMES  # same seed: identical raw bytes (sha256)
+    assert raw_a == raw_b and len(raw_a) == 196 * frames_per_photo(DEFAULT_FRAMES)  # same seed: identical raw bytes (sha256)
 
 
 def test_refuses_other_capture_and_repairs_corruption(run_a, tmp_path):
@@ -127,28 +129,32 @@ def test_capture_errors(tmp_path):
 
 
 def test_frames_per_exposure(run_a, tmp_path):
-    """The default capture takes every exposure of each photo's bracket DEFAULT_FRAMES times (the HDR merge averages
-    them; tests/test_hdr.py checks the statistics), against `hemicube capture --frames 1`: the same metered bracket,
-    each exposure repeated in a row, each frame its own file and its own noise. A one-frame folder's header lacks the
-    key (as every folder made before frame averaging), so it and the default's refuse each other as another capture;
-    counts that the frame streams cannot hold are refused before a folder is made."""
+    """The default capture takes the longer exposures of each photo's bracket DEFAULT_FRAMES times and the shortest
+    twice as often (the HDR merge averages them; tests/test_hdr.py checks the statistics), against `hemicube capture
+    --frames 1`: the same metered bracket, each exposure's frames in a row, each frame its own file and its own noise.
+    A one-frame folder's header lacks `frames_per_exposure` (as every folder made before frame averaging) and both
+    list their `exposure_frames` (which folders made before the shortest's repeat lack), so such folders refuse each
+    other as another capture; counts that the frame streams cannot hold are refused before a folder is made."""
     out = tmp_path / "x1"
     assert hemicube.cli.main(ARGS + ["--frames", "1", "-o", str(out)]) == 0
     m, m1 = _manifest(run_a), _manifest(out)
     assert m["frames_per_exposure"] == DEFAULT_FRAMES and "frames_per_exposure" not in m1 and verify(out) == []
+    assert m["exposure_frames"] == exposure_frames(DEFAULT_FRAMES) and m1["exposure_frames"] == [2, 1, 1]
     n = DEFAULT_FRAMES
     for stem in ("img00000_cam00", "img00070_cam00", "img00129_cam01"):
         rec, rec1 = m["photos"][stem], m1["photos"][stem]
-        assert rec["exposures_s"] == [t for t in rec1["exposures_s"] for _ in range(n)]
+        bracket = rec1["exposures_s"][1:]  # [t0, t0, t1, t2]: the shortest twice (t1 = t2 where clamped at 1 s)
+        assert bracket == sorted(bracket) and rec1["exposures_s"] == bracket_frames(bracket, 1)
+        assert rec["exposures_s"] == bracket_frames(bracket, n)
         raws = [f for f in rec["files"] if f.startswith("raw/")]
-        assert len(raws) == 3 * n and len(rec["files"]) == len(rec1["files"]) + 3 * (n - 1)
-        assert len(set(rec["frames"])) == 3 * n
+        assert len(raws) == frames_per_photo(n) == len(set(rec["frames"]))
+        assert len(rec["files"]) == len(rec1["files"]) + frames_per_photo(n) - frames_per_photo(1)
         first, second = ((run_a / f).read_bytes() for f in raws[:2])
         assert first != second  # two frames of one exposure: two noise draws
     with pytest.raises(CaptureError, match="different capture"):
         capture(twin.load_rig("mini"), "ramps", out, seed=1, progress=False)
-    for bad in (0, 6, 2.0):
-        with pytest.raises(CaptureError, match=r"frames per exposure must be an integer in \[1, 5\]"):
+    for bad in (0, 5, 2.0):
+        with pytest.raises(CaptureError, match=r"frames per exposure must be an integer in \[1, 4\]"):
             capture(twin.load_rig("mini"), "ramps", tmp_path / "bad", seed=1, progress=False, frames=bad)
     assert not (tmp_path / "bad").exists()
     # the reader's count (the fit weighs the photos by it, reconstruction.pipeline); a bad one names the folder
@@ -165,5 +171,5 @@ def test_validate_refuses_a_bad_frame_count_in_one_line(tmp_path, capsys):
     for args in (["validate"], ["validate", "--suite", "satin"]):
         assert hemicube.cli.main(args + ["--frames", "0", "-o", str(tmp_path / "v")]) == 2
         err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "frames per exposure must be an integer in [1, 5]" in err
+        assert err.count("\n") == 1 and "frames per exposure must be an integer in [1, 4]" in err
     assert not (tmp_path / "v").exists()

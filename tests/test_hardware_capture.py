@@ -12,7 +12,7 @@ import pytest
 import hemicube.cli
 from twin.capture.backends.led_emulator import spawn
 from twin.capture.backends.led_protocol import crc32
-from twin.capture.plan import DEFAULT_FRAMES
+from twin.capture.plan import DEFAULT_FRAMES, frames_per_photo
 from twin.capture.reliability import check_capture
 from twin.capture.session import verify
 
@@ -49,7 +49,7 @@ def test_hardware_capture_with_faults_equals_the_simulator_and_resumes(validate_
         "photos_or_raw_frames_differing_from_the_simulator": 0, "photos_acknowledged_with_another_pattern": 0,
         "camera_frames_used_twice": 0}
     assert report["brackets_retaken"]  # the camera faults cost retakes
-    assert all(len(rec["camera_frames"]) == 3 * DEFAULT_FRAMES for rec in hw["photos"].values())
+    assert all(len(rec["camera_frames"]) == frames_per_photo(DEFAULT_FRAMES) for rec in hw["photos"].values())
     assert sum(json.loads(line)["event"] == "fault" for line in log.read_text().splitlines()) > 0
 
     # resume: a damaged photo and a lost raw frame (of the secondary camera: its 64 patterns are rendered again,
@@ -60,7 +60,7 @@ def test_hardware_capture_with_faults_equals_the_simulator_and_resumes(validate_
     assert hemicube.cli.main(args) == 0
     assert verify(out) == [] and _manifest(out)["files"] == sim["files"]
     redone = {rel for rel in mtimes if (out / rel).stat().st_mtime_ns != mtimes[rel]}
-    n = 3 * DEFAULT_FRAMES  # raw frames a photo
+    n = frames_per_photo(DEFAULT_FRAMES)  # raw frames a photo
     assert {r for r in redone if r.startswith(("img", "raw/"))} == {
         "img00060_cam01.exr", *(f"raw/img00060_cam01_e{j}.BayerRG12p" for j in range(n)),
         "img00003_cam01.exr", *(f"raw/img00003_cam01_e{j}.BayerRG12p" for j in range(n) if j != 1)}

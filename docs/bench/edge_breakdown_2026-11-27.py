@@ -11,7 +11,7 @@ CAPTURE is OUT/capture); the fit is run with the pipeline's configuration for fo
   base               the pipeline's fit of the measured photos;
   swap_SEL_VIEWS     the same with the photos of the texels SEL replaced by the exact photos, in the primary view (p),
                      the secondary view (s) or both (ps); SEL: all, d1 (stock texels next to ink or foil), d12 (one
-                     or two texels from it), not1 (every texel but d1);
+                     or two texels from it), d2 (two texels from it), not1 (every texel but d1);
   weight_K_W         (needs the scratch hooks of docs/bench/edge_experiments_2026-11-27.patch applied to
                      reconstruction/fitting.py) the stock texels within K of ink or foil (chosen from the truth: an
                      oracle) with their data weighted W in the joint prior of roughness and albedos;
@@ -64,7 +64,7 @@ def fit(mode):
     if mode.startswith("swap_"):
         _, which, views = mode.split("_")
         sel = {"all": np.ones_like(stock), "d1": dist == 1, "d12": (dist >= 1) & (dist <= 2),
-               "not1": dist != 1, "d14": (dist >= 1) & (dist <= 4)}[which].reshape(-1)
+               "not1": dist != 1, "d14": (dist >= 1) & (dist <= 4), "d2": dist == 2}[which].reshape(-1)
         if "p" in views:
             lines[sel] = ex_p[sel]
         if "s" in views:

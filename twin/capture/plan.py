@@ -11,9 +11,10 @@ order shifts: learned 0..F-1, lines F..F+63, then bottom, uniform, empty bottom 
 records which pattern each photo showed, so `indices_of(session)` reads its layout back. K = 32 is the
 reference's layout (`REFERENCE_INDICES`).
 
-Each photo is an exposure bracket of BRACKET exposures, BRACKET_RATIO apart, each taken `frames` times
-(DEFAULT_FRAMES unless asked otherwise; `bracket_frames`), merged to linear HDR (twin.camera.hdr: repeated frames of
-one exposure are averaged by its inverse-variance weights, so N frames cut the temporal noise by sqrt(N)). The
+Each photo is an exposure bracket of BRACKET exposures, BRACKET_RATIO apart, the longer ones each taken `frames`
+times and the shortest SHORTEST_REPEAT times as often (DEFAULT_FRAMES unless asked otherwise; `bracket_frames`),
+merged to linear HDR (twin.camera.hdr: repeated frames of one exposure are averaged by its inverse-variance weights,
+so N frames cut the temporal noise by sqrt(N)). The
 learned frames default to the patterns a rig carries as data (DEFAULT_PATTERNS: the shipped network's for the
 built-in rigs, written there by reconstruction.pretrained), else a seeded placeholder; `twin` never asks the network
 for them.
@@ -38,6 +39,11 @@ MAX_FRAMES_PER_PHOTO = 16  # and the HDR merge takes 16 frames at most (twin.cam
 # every alpha, rho_d and normal median improved and fabric's compositions met the goals (docs/accuracy.md). The real
 # device takes four times the exposures (docs/performance.md has the capture times).
 DEFAULT_FRAMES = 4
+# The shortest exposure is taken twice as often (issue #14): it alone measures the brightest part of a photo, which
+# saturates the longer ones, so that part had a third of the photo's frames; on a bright stock (paper's, rho_d ~0.85)
+# that is where a weak lobe is, measured by 20,000 e- a photosite (0.6-0.9% shot noise; docs/accuracy.md). The extra
+# frames are the bracket's shortest: 4 more frames add 4 / (4 x 73) of a photo's exposure time (ratio 8: 1 + 8 + 64).
+SHORTEST_REPEAT = 2
 EXPOSURE_LIMITS_S = (20e-6, 1.0)  # the camera's exposure range used by the plan (a2A5328-15ucPRO: 20 us up)
 # Exposures are planned in whole microseconds, the unit cameras take them in (ExposureTime), so that a camera
 # (pylon's emulator included) applies exactly what was planned; the HDR merge uses what the camera reports.
@@ -162,23 +168,36 @@ def bracket_exposures(max_radiance: float, sensor) -> list[float]:
             / EXPOSURE_STEPS_PER_S for t in ts]
 
 
-def bracket_frames(exposures: list[float], frames: int) -> list[float]:
-    """The exposures a photo's raw frames take: each of the bracket's `frames` times in a row (frame averaging,
-    issue #14: the photos' noise is what limits a weak lobe; docs/accuracy.md)."""
+def exposure_frames(frames: int, exposures: int = BRACKET) -> list[int]:
+    """How many times a photo takes each exposure of its ascending bracket: the shortest SHORTEST_REPEAT x `frames`
+    times, the others `frames` times."""
     check_frames(frames)
-    return [t for t in exposures for _ in range(frames)]
+    return [SHORTEST_REPEAT * frames] + [frames] * (exposures - 1)
+
+
+def frames_per_photo(frames: int) -> int:
+    """The raw frames a photo of the plan takes."""
+    return sum(exposure_frames(frames))
+
+
+def bracket_frames(exposures: list[float], frames: int) -> list[float]:
+    """The exposures a photo's raw frames take, the ascending `exposures` each taken its `exposure_frames` times in a
+    row (frame averaging, issue #14: the photos' noise is what limits a weak lobe; docs/accuracy.md)."""
+    return [t for t, n in zip(exposures, exposure_frames(frames, len(exposures))) for _ in range(n)]
 
 
 def photo_exposures(max_radiance: float, sensor, frames: int = DEFAULT_FRAMES) -> list[float]:
     """The exposures of a photo's raw frames, in the order they are taken: the bracket of a photo whose brightest
-    radiance is `max_radiance` (bracket_exposures), each exposure `frames` times (bracket_frames)."""
+    radiance is `max_radiance` (bracket_exposures), each exposure its `exposure_frames` times (bracket_frames)."""
     return bracket_frames(bracket_exposures(max_radiance, sensor), frames)
 
 
 def check_frames(frames) -> int:
-    if not isinstance(frames, int) or isinstance(frames, bool) or not 1 <= frames <= MAX_FRAMES_PER_PHOTO // BRACKET:
-        raise CaptureError(f"frames per exposure must be an integer in [1, {MAX_FRAMES_PER_PHOTO // BRACKET}] "
-                           f"({BRACKET} exposures a photo, {MAX_FRAMES_PER_PHOTO} frames at most), got {frames!r}")
+    most = MAX_FRAMES_PER_PHOTO // (BRACKET - 1 + SHORTEST_REPEAT)
+    if not isinstance(frames, int) or isinstance(frames, bool) or not 1 <= frames <= most:
+        raise CaptureError(f"frames per exposure must be an integer in [1, {most}] ({BRACKET} exposures a photo, the "
+                           f"shortest {SHORTEST_REPEAT} times as often, {MAX_FRAMES_PER_PHOTO} frames at most), "
+                           f"got {frames!r}")
     return frames
 
 

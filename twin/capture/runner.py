@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.capture.plan import (BRACKET, BRACKET_RATIO, DEFAULT_FRAMES, CaptureError, build_patterns, check_frames,
-                               frame_id, paper_plan, photo_exposures)
+                               exposure_frames, frame_id, paper_plan, photo_exposures)
 from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession
 
 WRITERS = max(1, min(8, os.cpu_count() or 1))
@@ -71,8 +71,9 @@ def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict
 
 
 def photos(rig, sims: dict, patterns, todo, device: str, stage=None, frames: int = DEFAULT_FRAMES):
-    """Take the photos `todo` (plan entries), each exposure of the bracket `frames` times: yields (photo, raws
-    (n, H, W) uint16 Warp array, HDR merge (twin.camera.hdr.merge_hdr_device's dict), record), all on `device`.
+    """Take the photos `todo` (plan entries), each exposure of the bracket its exposure_frames(frames) times
+    (twin.capture.plan): yields (photo, raws (n, H, W) uint16 Warp array, HDR merge
+    (twin.camera.hdr.merge_hdr_device's dict), record), all on `device`.
     `stage(name)`, when given, is a context manager around each stage ("render", "sensor", "hdr"): the bench's
     timer."""
     import warp as wp
@@ -127,14 +128,17 @@ def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", res
         header["simulated_with"] = {"rig": truth.name, "rig_digest": truth.digest()}
     if check_frames(frames) != 1:  # absent: one frame an exposure (so the folders made before this stay resumable)
         header["frames_per_exposure"] = frames
+    # each exposure's frames (the shortest's repeated more: twin.capture.plan.SHORTEST_REPEAT); a folder made
+    # before that has no such key, so it is not resumed with frames taken another way
+    header["exposure_frames"] = exposure_frames(frames)
     return header, patterns, plan
 
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
             resolution: int = SAMPLE_RESOLUTION, learned=None, progress: bool = True, devices: dict | None = None,
             truth=None, frames: int = DEFAULT_FRAMES) -> Path:
-    """Run the plan into `output` (resuming a killed run there), each exposure taken `frames` times (the HDR merge
-    averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices` are the
+    """Run the plan into `output` (resuming a killed run there), each exposure taken `frames` times, the shortest
+    twice as often (the HDR merge averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices` are the
     hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
     (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
     calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must be

@@ -121,7 +121,8 @@ class CaptureSession:
 
     @property
     def frames_per_exposure(self) -> int:
-        """Raw frames taken of each exposure of a photo's bracket (the header's key; absent: one, as in every folder
+        """Raw frames taken of each of a photo's longer exposures, the shortest's being SHORTEST_REPEAT times as many
+        where the header lists `exposure_frames` (twin.capture.plan; the header's key; absent: one, as in every folder
         made before frame averaging); a value out of range is a CaptureError naming the folder."""
         frames = self.header.get("frames_per_exposure", 1)
         try:

@@ -15,8 +15,8 @@ Multiplexing gain (sources)
 Photo noise (ours: the capture plan's photos, twin.capture.plan and twin.camera.hdr)
     A photo of mean radiance B at a pixel is a bracket of exposures t_j (bracket_exposures: BRACKET exposures
     BRACKET_RATIO apart, the shortest putting the photo's brightest radiance at 80% of saturation, clamped
-    to EXPOSURE_LIMITS_S and rounded to microseconds), each taken `frames` times in a row (bracket_frames; the
-    plan's DEFAULT_FRAMES unless given), merged as twin.camera.hdr's merge does, frame by frame, with its noise
+    to EXPOSURE_LIMITS_S and rounded to microseconds), each taken `frames` times in a row and the shortest
+    SHORTEST_REPEAT times as often (bracket_frames; the plan's DEFAULT_FRAMES unless given), merged as twin.camera.hdr's merge does, frame by frame, with its noise
     model evaluated at the true radiance (the merge evaluates it at its pilot estimate of it):
         mean electrons  mu_j = B k t_j + dark t_j          (k = electrons_per_radiance_s)
         variance        v_j = mu_j + read_noise^2 + g^2 / 12   (shot incl. dark, read, ADC rounding; g e-/DN)
@@ -97,14 +97,14 @@ def measurement_noise(rig, patterns_signed, lumitexels, sensor: SensorParams, ex
     of a pair is a bracket merged to HDR (module docstring): exposures "plan" brackets each photo from its
     brightest radiance over the M texels (twin.capture.plan.bracket_exposures); a number (seconds) or a
     sequence of them takes every photo at those fixed exposures; either way each exposure is taken `frames`
-    times (module docstring). y's variance is the sum of its two photos'.
+    times, the shortest SHORTEST_REPEAT times as often (module docstring). y's variance is the sum of its two photos'.
     Returns a dict of arrays:
         signal (K, M)        y (radiance)
         sigma (K, M)         its standard deviation; inf where a photo saturates in every frame
         snr (K, M)           |signal| / sigma (0 where sigma is inf)
         saturated (K,)       a photo's shortest exposure saturates at some texel (with the plan: the pattern
                              is too bright for EXPOSURE_LIMITS_S)
-        exposures_s (K, 2, T) the (+, -) photos' raw frames' exposures (T = BRACKET x frames with the plan);
+        exposures_s (K, 2, T) the (+, -) photos' raw frames' exposures (T = frames_per_photo(frames) with the plan);
                              0 for a photo with no LED lit (not taken)."""
     P = _check_patterns(rig, patterns_signed)
     T = _check_lumitexels(rig, lumitexels)
@@ -153,13 +153,14 @@ def olat_functional_gain(rig, patterns_signed, lumitexels, sensor: SensorParams,
 
 def _photo_noise(B, fixed, sensor: SensorParams, frames: int):
     """Photos of radiance B (P, M) -> (raw frames' exposures (P, T), merged variance (P, M) radiance^2, shortest
-    frame saturated (P, M)), with the plan's brackets (fixed None) or the fixed ascending exposures, each taken
-    `frames` times in a row: the merge's order (shortest first, stable), so its exclusion rule counts the
+    frame saturated (P, M)), with the plan's brackets (fixed None) or the fixed ascending exposures, taken as the
+    plan takes a bracket's (bracket_frames), each exposure's frames in a row: the merge's order (shortest first, stable), so its exclusion rule counts the
     repeats of an exposure among the frames used before."""
     if fixed is None:
         ts = np.array([photo_exposures(float(b.max(initial=0.0)), sensor, frames) for b in B]).reshape(len(B), -1)
     else:
-        ts = np.broadcast_to(bracket_frames(list(fixed), frames), (len(B), len(fixed) * frames))
+        taken = bracket_frames(list(fixed), frames)
+        ts = np.broadcast_to(taken, (len(B), len(taken)))
     g = effective_gain(sensor)  # the plan's analogue gain, 0 dB
     const_var = sensor.read_noise_e ** 2 + g * g / 12.0
     e_thr = (saturation_threshold_dn(sensor) - sensor.black_level_dn) * g
