@@ -14,10 +14,9 @@ reference's layout (`REFERENCE_INDICES`).
 Each photo is an exposure bracket of BRACKET exposures, BRACKET_RATIO apart, the longer ones each taken `frames`
 times and the shortest SHORTEST_REPEAT times as often (DEFAULT_FRAMES unless asked otherwise; `bracket_frames`),
 merged to linear HDR (twin.camera.hdr: repeated frames of one exposure are averaged by its inverse-variance weights,
-so N frames cut the temporal noise by sqrt(N)). The
-learned frames default to the patterns a rig carries as data (DEFAULT_PATTERNS: the shipped network's for the
-built-in rigs, written there by reconstruction.pretrained), else a seeded placeholder; `twin` never asks the network
-for them.
+so N frames cut the temporal noise by sqrt(N)). The learned frames default to the patterns a rig carries as data
+(DEFAULT_PATTERNS: the shipped network's for the built-in rigs, written there by reconstruction.pretrained), else a
+seeded placeholder; `twin` never asks the network for them.
 """
 from __future__ import annotations
 
@@ -37,7 +36,7 @@ MAX_FRAMES_PER_PHOTO = 16  # and the HDR merge takes 16 frames at most (twin.cam
 # Four frames an exposure by default (issue #14): a weak, rough lobe (fabric's, paper stock's: 0.5-2% of a photo) is
 # decided by the photos' temporal noise, and averaging four frames halves it; measured on the whole material suite,
 # every alpha, rho_d and normal median improved and fabric's compositions met the goals (docs/accuracy.md). The real
-# device takes four times the exposures (docs/performance.md has the capture times).
+# device takes each exposure four times, the shortest eight (docs/performance.md has the capture times).
 DEFAULT_FRAMES = 4
 # The shortest exposure is taken twice as often (issue #14): it alone measures the brightest part of a photo, which
 # saturates the longer ones, so that part had a third of the photo's frames; on a bright stock (paper's, rho_d ~0.85)
