@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     import hemicube.design
     import reconstruction.cli
     import twin.cli
-    from twin.capture.plan import DEFAULT_FRAMES
+    from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
 
     p = argparse.ArgumentParser(prog="hemicube", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -47,8 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "holding one folder per sample and report/)")
     s.add_argument("--resolution", type=int, help="texture grid texels per side (default: the pipeline's, 48)")
     s.add_argument("--seed", type=int, default=1, help="the virtual capture's seed (default: %(default)s)")
-    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help="frames taken of every exposure (the shortest: "
-                   "twice as many) and averaged, against the photos' noise (default: %(default)s)")
+    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=FRAMES_HELP)
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.add_argument("--anyway", action="store_true", help="on the CPU, run even a capture estimated to take "
                    "hours (the paper rig) instead of stopping with the estimate")

@@ -104,7 +104,8 @@ def test_kill_and_resume_is_byte_identical(run_a, tmp_path):
     a = _manifest(run_a)["files"]
     raw_a = {k: v for k, v in a.items() if k.startswith("raw/")}
     raw_b = {k: v for k, v in after["files"].items() if k.startswith("raw/")}
-    assert raw_a == raw_b and len(raw_a) == 196 * frames_per_photo(DEFAULT_FRAMES)  # same seed: identical raw bytes (sha256)
+    # same seed: identical raw bytes (sha256)
+    assert raw_a == raw_b and len(raw_a) == 196 * frames_per_photo(DEFAULT_FRAMES)
 
 
 def test_refuses_other_capture_and_repairs_corruption(run_a, tmp_path):

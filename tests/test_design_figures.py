@@ -245,7 +245,8 @@ def _raw(B, t, sensor, rng, shape):
 @pytest.mark.parametrize("frames", [1, 4])
 def test_sigma_matches_monte_carlo(rig, frames):
     """y = B(W+) - B(W-) drawn 20,000 times through a numpy sensor and twin's HDR merge (merge_hdr_numpy) at a
-    fixed bracket taken as the plan takes one (bracket_frames: `frames` times, the shortest twice as often). The photos' radiances put every texel in another regime:
+    fixed bracket taken as the plan takes one (bracket_frames: `frames` times, the shortest twice as often). The
+    photos' radiances put every texel in another regime:
     read-noise dominated (<= 11 e- in the longest frame), all three exposures used with shot noise dominating the
     longest, two, the shortest only (each frame's use decided > 15 sd from the merge's threshold).
     The standard error of a standard deviation from N = 20,000 draws is ~ 1 / sqrt(2 N) = 0.5%; the tolerance

@@ -190,9 +190,9 @@ def test_merge_kernels_are_the_numpy_merge(bayer, gain_db, n, device):
 
 def test_repeated_frames_of_an_exposure_average():
     """A bracket whose every exposure is taken 4 times (as twin.capture.plan.bracket_frames takes the longer
-    ones): the merge weighs the repeats alike, so its predicted temporal variance (1 / weights_sum) is a quarter of one frame's, and the
-    merged photosites scatter about the truth as that predicts (unit z spread, no bias), PRNU's fixed pattern
-    included."""
+    ones): the merge weighs the repeats alike, so its predicted temporal variance (1 / weights_sum) is a quarter
+    of one frame's, and the merged photosites scatter about the truth as that predicts (unit z spread, no bias),
+    PRNU's fixed pattern included."""
     rad = np.full((64, 64, 3), 0.3, np.float32) * np.array([1.0, 0.8, 0.6], np.float32)
     ts = choose_bracket(float(rad.max()), S, n=3, ratio=8.0)
     one = merge_hdr(_sim(rad, ts, seed=5), ts, S)

@@ -33,7 +33,8 @@ def test_reader_gives_what_the_capture_wrote(validate_dir, mini):
     cam = mini.camera(list(mini.cameras)[1])
     assert img.shape == (cam.height, cam.width, 3) and img.dtype == np.float32
     raws = s.raw_frames(129, 1)
-    assert len(raws) == frames_per_photo(DEFAULT_FRAMES) and all(r.shape == (cam.height, cam.width) and r.max() <= 4095 for r in raws)
+    assert len(raws) == frames_per_photo(DEFAULT_FRAMES)
+    assert all(r.shape == (cam.height, cam.width) and r.max() <= 4095 for r in raws)
     assert s.patterns().num_patterns >= 131 - 64 and s.has_ground_truth
     assert s.ground_truth_maps().resolution == 128 and s.pixel_texel(0).shape[-1] == 2
 

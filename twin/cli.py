@@ -188,7 +188,7 @@ def _pattern_image_args(s) -> None:
 
 def register(sub) -> None:
     """Add the twin's sub-commands to the front's parser."""
-    from twin.capture.plan import DEFAULT_FRAMES
+    from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
 
     rig = sub.add_parser("rig", help="inspect, import and export rigs").add_subparsers(dest="rig_command",
                                                                                        required=True)
@@ -243,8 +243,7 @@ def register(sub) -> None:
                    "(default: %(default)s)")
     s.add_argument("--resolution", type=int, default=128, help="texels per side of a built-in sample's maps "
                    "(default: %(default)s)")
-    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help="frames taken of every exposure (the shortest: "
-                   "twice as many) and averaged by the HDR merge, against the photos' noise (default: %(default)s)")
+    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=FRAMES_HELP)
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
     s.add_argument("--patterns", help="pattern file with the learned frames, K (+, -) pairs (a `hemicube train` "
                    "run's patterns.npz; default: the rig's own 64, else a seeded placeholder)")
@@ -289,7 +288,7 @@ def register(sub) -> None:
 
 def register_bench(bench) -> None:
     """Add the twin's benchmarks to the front's `bench` group."""
-    from twin.capture.plan import DEFAULT_FRAMES
+    from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
 
     s = bench.add_parser("lumitexel", help="LED-BRDF evaluations per second vs a plain torch baseline")
     s.add_argument("--rig", default="paper", help=RIG_HELP)
@@ -309,8 +308,7 @@ def register_bench(bench) -> None:
     s.add_argument("--seed", type=int, default=0, help="the capture's seed (default: %(default)s)")
     s.add_argument("--scale", type=float, default=1.0, help="resize the cameras by this factor, e.g. 0.5 for a "
                    "quick run (default: %(default)s)")
-    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help="frames taken of every exposure, the "
-                   "shortest twice as many (default: %(default)s, the capture's)")
+    s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=FRAMES_HELP)
     s.add_argument("-o", "--output", help="also run `hemicube capture` into this folder, files written, and time it")
     s.set_defaults(func=cmd_bench)
 

@@ -43,6 +43,8 @@ DEFAULT_FRAMES = 4
 # that is where a weak lobe is, measured by 20,000 e- a photosite (0.6-0.9% shot noise; docs/accuracy.md). The extra
 # frames are the bracket's shortest: 4 more frames add 4 / (4 x 73) of a photo's exposure time (ratio 8: 1 + 8 + 64).
 SHORTEST_REPEAT = 2
+# the largest `frames` whose photo the 16 frame streams hold
+MAX_FRAMES_PER_EXPOSURE = MAX_FRAMES_PER_PHOTO // (BRACKET - 1 + SHORTEST_REPEAT)
 EXPOSURE_LIMITS_S = (20e-6, 1.0)  # the camera's exposure range used by the plan (a2A5328-15ucPRO: 20 us up)
 # Exposures are planned in whole microseconds, the unit cameras take them in (ExposureTime), so that a camera
 # (pylon's emulator included) applies exactly what was planned; the HDR merge uses what the camera reports.
@@ -191,12 +193,16 @@ def photo_exposures(max_radiance: float, sensor, frames: int = DEFAULT_FRAMES) -
     return bracket_frames(bracket_exposures(max_radiance, sensor), frames)
 
 
+# `--frames`'s help, the same for every command that captures (twin.cli, hemicube.cli)
+FRAMES_HELP = (f"frames taken of every exposure, the shortest {SHORTEST_REPEAT} times as many, averaged by the HDR "
+               f"merge against the photos' noise (at most {MAX_FRAMES_PER_EXPOSURE}; default: %(default)s)")
+
+
 def check_frames(frames) -> int:
-    most = MAX_FRAMES_PER_PHOTO // (BRACKET - 1 + SHORTEST_REPEAT)
-    if not isinstance(frames, int) or isinstance(frames, bool) or not 1 <= frames <= most:
-        raise CaptureError(f"frames per exposure must be an integer in [1, {most}] ({BRACKET} exposures a photo, the "
-                           f"shortest {SHORTEST_REPEAT} times as often, {MAX_FRAMES_PER_PHOTO} frames at most), "
-                           f"got {frames!r}")
+    if not isinstance(frames, int) or isinstance(frames, bool) or not 1 <= frames <= MAX_FRAMES_PER_EXPOSURE:
+        raise CaptureError(f"frames per exposure must be an integer in [1, {MAX_FRAMES_PER_EXPOSURE}] ({BRACKET} "
+                           f"exposures a photo, the shortest {SHORTEST_REPEAT} times as often, {MAX_FRAMES_PER_PHOTO} "
+                           f"frames at most), got {frames!r}")
     return frames
 
 

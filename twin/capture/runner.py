@@ -138,8 +138,8 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
             resolution: int = SAMPLE_RESOLUTION, learned=None, progress: bool = True, devices: dict | None = None,
             truth=None, frames: int = DEFAULT_FRAMES) -> Path:
     """Run the plan into `output` (resuming a killed run there), each exposure taken `frames` times, the shortest
-    twice as often (the HDR merge averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices` are the
-    hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
+    twice as often (the HDR merge averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices`
+    are the hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
     (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
     calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must be
     `rig`'s device (Rig.layout_digest): differ only in how the cameras record light, in the cameras' lenses and

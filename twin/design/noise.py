@@ -16,8 +16,9 @@ Photo noise (ours: the capture plan's photos, twin.capture.plan and twin.camera.
     A photo of mean radiance B at a pixel is a bracket of exposures t_j (bracket_exposures: BRACKET exposures
     BRACKET_RATIO apart, the shortest putting the photo's brightest radiance at 80% of saturation, clamped
     to EXPOSURE_LIMITS_S and rounded to microseconds), each taken `frames` times in a row and the shortest
-    SHORTEST_REPEAT times as often (bracket_frames; the plan's DEFAULT_FRAMES unless given), merged as twin.camera.hdr's merge does, frame by frame, with its noise
-    model evaluated at the true radiance (the merge evaluates it at its pilot estimate of it):
+    SHORTEST_REPEAT times as often (bracket_frames; the plan's DEFAULT_FRAMES unless given), merged as
+    twin.camera.hdr's merge does, frame by frame, with its noise model evaluated at the true radiance (the merge
+    evaluates it at its pilot estimate of it):
         mean electrons  mu_j = B k t_j + dark t_j          (k = electrons_per_radiance_s)
         variance        v_j = mu_j + read_noise^2 + g^2 / 12   (shot incl. dark, read, ADC rounding; g e-/DN)
         frame used      mu_j < e_thr = (saturation_threshold_dn - black) g, and for all but the first frame
@@ -97,7 +98,8 @@ def measurement_noise(rig, patterns_signed, lumitexels, sensor: SensorParams, ex
     of a pair is a bracket merged to HDR (module docstring): exposures "plan" brackets each photo from its
     brightest radiance over the M texels (twin.capture.plan.bracket_exposures); a number (seconds) or a
     sequence of them takes every photo at those fixed exposures; either way each exposure is taken `frames`
-    times, the shortest SHORTEST_REPEAT times as often (module docstring). y's variance is the sum of its two photos'.
+    times, the shortest SHORTEST_REPEAT times as often (module docstring). y's variance is the sum of its two
+    photos'.
     Returns a dict of arrays:
         signal (K, M)        y (radiance)
         sigma (K, M)         its standard deviation; inf where a photo saturates in every frame
@@ -154,8 +156,8 @@ def olat_functional_gain(rig, patterns_signed, lumitexels, sensor: SensorParams,
 def _photo_noise(B, fixed, sensor: SensorParams, frames: int):
     """Photos of radiance B (P, M) -> (raw frames' exposures (P, T), merged variance (P, M) radiance^2, shortest
     frame saturated (P, M)), with the plan's brackets (fixed None) or the fixed ascending exposures, taken as the
-    plan takes a bracket's (bracket_frames), each exposure's frames in a row: the merge's order (shortest first, stable), so its exclusion rule counts the
-    repeats of an exposure among the frames used before."""
+    plan takes a bracket's (bracket_frames), each exposure's frames in a row: the merge's order (shortest first,
+    stable), so its exclusion rule counts the repeats of an exposure among the frames used before."""
     if fixed is None:
         ts = np.array([photo_exposures(float(b.max(initial=0.0)), sensor, frames) for b in B]).reshape(len(B), -1)
     else:
