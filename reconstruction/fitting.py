@@ -158,7 +158,9 @@ class FitConfig:
     jacobian: str = "analytic"
     fd_step: float = 1e-3  # direct: forward-difference step of the Jacobian in every number (ours), and the
     # analytic one's where a lobe is isotropic (_tensor_system)
-    tolerance: float = 1e-5  # direct: a texel stops when a kept step lowers its loss by less (relative; ours)
+    # direct: a texel stops when a kept step lowers its loss by less (relative; ours); the joint prior stops when a
+    # kept step lowers its objective by less than this times its size at noise level (_joint_roughness)
+    tolerance: float = 1e-5
     propagation: int = 2  # direct, on a grid: rounds of neighbour propagation (ours; _propagate)
     # direct, on a grid (ours; _joint_roughness): the expected change of log alpha between neighbouring texels of
     # one material, the scale of a Gaussian smoothness prior that texels whose photos barely constrain alpha
@@ -1321,6 +1323,21 @@ def _degree(weights, grid_shape) -> torch.Tensor:
     return deg
 
 
+def _pinned(H: torch.Tensor, tau: float) -> torch.Tensor:
+    """(n,) bool: the texels whose own photos pin their mean log alpha to within tau / 4 (one standard deviation,
+    from the Gauss-Newton block H (n, 5, 5) of unit-variance residuals at [u, v, m, c, s], the normal's two numbers
+    free): their neighbours' roughness could move them by a small fraction of tau at most, so the joint prior
+    leaves them where their own fit put them (_joint_roughness)."""
+    A, B, C = H[:, 2:, 2:], H[:, 2:, :2], H[:, :2, :2]
+    eye2 = torch.eye(2, dtype=H.dtype, device=H.device)
+    S = A - B @ torch.linalg.solve(C + 1e-12 * (torch.diagonal(C, dim1=1, dim2=2).sum(1)[:, None, None] + 1) * eye2,
+                                   B.transpose(1, 2))
+    S = S + 1e-12 * (torch.diagonal(S, dim1=1, dim2=2).sum(1)[:, None, None] + 1) * torch.eye(3, dtype=H.dtype,
+                                                                                             device=H.device)
+    var = torch.linalg.inv(S)[:, 0, 0]
+    return torch.isfinite(var) & (var > 0) & (var < (tau / 4) ** 2)
+
+
 def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_shape, resume: dict | None = None,
                      save=None) -> tuple[torch.Tensor, dict]:
     """All texels' numbers at once under a smoothness prior on the roughness (ours, issue #14;
@@ -1337,28 +1354,40 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
     (issue #14's fabric and paper), about the per-texel noise of the extracted photos (0.4%), so a texel's own
     fit errs by 15-60% and noise turns an isotropic lobe anisotropic, while the noise-free oracle fit is exact
     (docs/accuracy.md). The photos of a region are pooled, not its per-texel estimates, which noise biases.
+
+    How it is solved, and why (docs/accuracy.md, step 15: paper's stock ended 0.2 low in log alpha because this loop
+    stopped far from F's minimum, not because F put it there):
+    - The texels whose own photos pin their roughness (_pinned, at the start: a sharp lobe, ink and foil) stay where
+      their own fit put them; they still enter F and hold their neighbours through the prior, and only the others
+      are evaluated again. Their lobes are the most nonlinear in x, and a step that overshot one of them refused
+      the whole trial.
+    - A damping mu_i per texel (Marquardt's, scaled by the block's diagonal): after a trial, a texel whose data term
+      changed as its Gauss-Newton model predicted (to half the prediction) divides its mu by 3, any other doubles
+      it; a refused trial (F did not fall) multiplies the latter's by 4 (every texel's, if each held). With one mu
+      for all, the worst-modelled texel set it for all, and the flat directions of the weak lobes, where the pooled
+      roughness moves by a small fraction of its distance a step, were damped still.
+    - It stops when a kept trial lowers F by less than FitConfig.tolerance times n (R_i - 5), F's size were every
+      texel fitted to its noise (R_i residuals a texel), not times F, which the misfit of a few mixed texels (a
+      printed edge's) can make a hundred times that.
     `resume`: the state a killed run saved (_fit_direct's checkpoint), from which the loop goes on as it would have;
-    `save(state)` is called after every step. The damping follows Nielsen (1999; Madsen, Nielsen & Tingleff 2004,
-    Eq. 2.21) rather than a fixed x4 / /3: a kept step's gain ratio rho (F's actual decrease over the decrease its
-    Gauss-Newton model predicts) scales mu by max(1/3, 1 - (2 rho - 1)^3), so a step the model predicted poorly
-    keeps mu up instead of inviting a refused trial (at 1024^2 each trial is a pass over all texels, ~4 s); a
-    refused one multiplies it by nu, which doubles with each refusal in a row. Returns (q, info); info's
-    joint_trials lists each trial step's [mu, its relative change of F, its gain ratio] (a refused one's change
-    >= 0)."""
+    `save(state)` is called after every trial. Returns (q, info); info's joint_trials lists each trial's [median mu
+    of the free texels, its relative change of F, the share of free texels whose model held] (a refused one's change
+    >= 0), joint_pinned the count of pinned texels."""
     c = prob.config
     R, C = (int(v) for v in grid_shape)
     weights = _colour_weights(rho_d, (R, C), 1.0 / c.alpha_prior ** 2)
     prior_dims = slice(2, 5)
     x = _to_tensor(q).double()
     lo, hi = (math.log(v) for v in c.alpha_range)
+    dof = max(_residual_count(prob) - GEOMETRY_SIZE, 1)
 
-    def data(x, jac: bool = True):
-        """Per chunk of texels (only the 5 x 5 normal equations are kept, not the Jacobians: the paper rig's
-        residuals are 3 x 12,288 + photos per texel): each texel's sum of squared residuals, their total, the
-        Gauss-Newton blocks J^T J and gradients J^T r (None without jac)."""
+    def data(x, texels: torch.Tensor, jac: bool = True):
+        """Per chunk of the texels (only the 5 x 5 normal equations are kept, not the Jacobians: the paper rig's
+        residuals are 3 x 12,288 + photos per texel): each one's sum of squared residuals, the Gauss-Newton
+        blocks J^T J and gradients J^T r (None without jac)."""
         rows, Hs, gs = [], [], []
         with torch.no_grad():
-            for idx in _chunks(prob, c.batch):
+            for idx in texels.split(_chunk_size(prob, c.batch)):
                 part, xi = prob.part(idx), x[idx].float()
                 if jac:
                     H, g, loss = _tensor_system(part, xi)
@@ -1367,66 +1396,84 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
                 else:
                     loss = _loss(part, _from_tensor(xi))
                 rows.append(loss.double())
-        rows = torch.cat(rows)
-        return rows, float(rows.sum()), torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None
+        return torch.cat(rows), torch.cat(Hs) if jac else None, torch.cat(gs) if jac else None
 
     def prior(x):
         a = x[:, prior_dims]
         return float((a * _laplacian(a, weights, (R, C))).sum())  # sum_{i~j} w_ij |a_i - a_j|^2
 
+    every = torch.arange(x.shape[0], device=x.device)
     if resume is None:
-        rows, total, JJ, Jr = data(x)
-        sigma2 = float((rows / max(_residual_count(prob) - GEOMETRY_SIZE, 1)).median().clamp_min(1e-30))
-        F = total / sigma2 + prior(x)
-        F0, mu, nu, kept, cg, tried, trials = F, c.lm_damping, 2.0, 0, 0, 0, []
+        rows, JJ, Jr = data(x, every)
+        sigma2 = float((rows / dof).median().clamp_min(1e-30))
+        F = float(rows.sum()) / sigma2 + prior(x)
+        frozen = _pinned(JJ / sigma2, c.alpha_prior)
+        mu = torch.full((x.shape[0],), c.lm_damping, dtype=torch.float64, device=x.device)
+        F0, kept, cg, tried, trials = F, 0, 0, 0, []
     else:  # the same numbers the loop held when they were saved; the system at x is recomputed (deterministic)
         x = torch.as_tensor(resume["x"], dtype=torch.float64, device=x.device)
-        sigma2, F, F0, mu, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "mu", "kept", "cg", "tried"))
-        nu = resume.get("nu", 2.0)  # a state saved before Nielsen's rule has none: it goes on as after a kept step
+        sigma2, F, F0, kept, cg, tried = (resume[k] for k in ("sigma2", "F", "F0", "kept", "cg", "tried"))
         trials = list(resume.get("trials", []))
-        rows, total, JJ, Jr = data(x) if tried < c.steps and not resume["done"] else (None,) * 4
-    done = resume is not None and resume["done"]
+        rows, JJ, Jr = data(x, every) if tried < c.steps and not resume["done"] else (None,) * 3
+        # a state saved before the damping per texel holds one mu and no pinned texels: it goes on with both
+        mu = torch.as_tensor(np.broadcast_to(np.asarray(resume["mu"], np.float64), (x.shape[0],)).copy(),
+                             device=x.device)
+        frozen = (torch.as_tensor(np.asarray(resume["frozen"]), device=x.device) if "frozen" in resume
+                  else torch.zeros(x.shape[0], dtype=torch.bool, device=x.device))
+    done = resume is not None and resume["done"] or bool(frozen.all())
+    free = (~frozen).double()[:, None]
+    moving = torch.nonzero(~frozen).flatten()  # only these are evaluated again: the pinned ones' rows stay
+    if resume is not None and kept and rows is not None:  # as the loop held them: the moving ones' from their own pass
+        rows[moving], JJ[moving], Jr[moving] = data(x, moving)
+    scale = dof * x.shape[0]
 
     def state():
-        return {"x": x.cpu().numpy(), "sigma2": sigma2, "F": F, "F0": F0, "mu": mu, "nu": nu, "kept": kept, "cg": cg,
-                "tried": tried, "done": done, "trials": trials}
+        return {"x": x.cpu().numpy(), "sigma2": sigma2, "F": F, "F0": F0, "mu": mu.cpu().numpy(), "kept": kept,
+                "cg": cg, "tried": tried, "done": done, "trials": trials, "frozen": frozen.cpu().numpy()}
 
     while not done and tried < c.steps:
         tried += 1
         H = JJ / sigma2
-        g = Jr / sigma2
+        g_data = Jr / sigma2
+        g = g_data.clone()
         g[:, prior_dims] += _laplacian(x[:, prior_dims], weights, (R, C))
         d = torch.diagonal(H, dim1=1, dim2=2)
-        H_damped = H + torch.diag_embed(mu * (d + 1e-6 * d.sum(1, keepdim=True)) + 1e-12)
-        step, it = _block_pcg(H_damped, weights, (R, C), -g, prior_dims, 10 * (R + C))
+        H_damped = H + torch.diag_embed(mu[:, None] * (d + 1e-6 * d.sum(1, keepdim=True)) + 1e-12)
+        # a pinned texel's block made rigid: its step is 0 and its neighbours see it fixed
+        H_damped[frozen] = torch.eye(GEOMETRY_SIZE, dtype=H.dtype, device=H.device) * 1e30
+        step, it = _block_pcg(H_damped, weights, (R, C), -g * free, prior_dims, 10 * (R + C))
+        step = step * free
         cg += it
         xn = x + step
-        # the model's decrease -(2 g.h + h (H + L) h): F's gradient is 2 g and its Gauss-Newton Hessian 2 (H + L)
-        Hh = (H @ step[..., None])[..., 0]
-        Hh[:, prior_dims] += _laplacian(step[:, prior_dims], weights, (R, C))
-        predicted = -float(2 * (g * step).sum() + (step * Hh).sum())
         # a trial step is evaluated by its loss alone, and a kept one's Gauss-Newton system computed after: at 1024^2
-        # on the paper rig a pass of losses costs ~4 s and one of systems ~9 s, and about half the trials are refused
-        # (docs/performance.md, issue #12)
-        Fn = data(xn, False)[1] / sigma2 + prior(xn)
+        # on the paper rig a pass of losses costs ~4 s and one of systems ~9 s (docs/performance.md, issue #12)
+        rows_n = rows.clone()
+        rows_n[moving] = data(xn, moving, False)[0]
+        Fn = float(rows_n.sum()) / sigma2 + prior(xn)
+        # each texel's data term: its actual decrease against its Gauss-Newton model's -(2 g.h + h H h)
+        predicted = -(2 * (g_data * step).sum(1) + (step * (H @ step[..., None])[..., 0]).sum(1))
+        actual = (rows - rows_n) / sigma2
+        held = torch.isfinite(actual) & ((actual - predicted).abs() <= 0.5 * predicted.abs() + 1e-3)
         refused = not math.isfinite(Fn) or Fn >= F
-        rho = (F - Fn) / predicted if math.isfinite(Fn) and predicted > 0 else None
-        trials.append([mu, Fn / F - 1 if math.isfinite(Fn) else None, rho])
+        trials.append([float(mu[~frozen].median()) if (~frozen).any() else 0.0,
+                       Fn / F - 1 if math.isfinite(Fn) else None,
+                       float(held[~frozen].double().mean()) if (~frozen).any() else 1.0])
         if refused:
-            mu, nu = mu * nu, nu * 2
-            done = mu > 1e10
+            mu = torch.where(held, mu, mu * 4) if not bool(held[~frozen].all()) else mu * 4
+            done = bool((mu[~frozen] > 1e10).all()) if (~frozen).any() else True
         else:
-            scale = max(1 / 3, 1 - (2 * rho - 1) ** 3) if rho is not None else 1 / 3
-            gain, x, F, mu, nu, kept = (F - Fn) / F, xn, Fn, mu * scale, 2.0, kept + 1
+            gain = (F - Fn) / scale
+            x, F, kept = xn, Fn, kept + 1
+            mu = torch.where(held, (mu / 3).clamp_min(1e-7), mu * 2)
             done = gain < c.tolerance
             if not done:
-                rows, total, JJ, Jr = data(x)
+                rows[moving], JJ[moving], Jr[moving] = data(x, moving)
         if save is not None:
             save(state())
     out = _from_tensor(x.float())
     out[:, 3:5] = out[:, 3:5].clamp(lo, hi)
     return out, {"joint_steps": kept, "joint_cg_iterations": cg, "joint_objective": [F0, F],
-                 "joint_sigma2": sigma2, "joint_trials": trials}
+                 "joint_sigma2": sigma2, "joint_trials": trials, "joint_pinned": int(frozen.sum())}
 
 
 def _joint_albedos(prob: _Problem, sums: list, rho_d: torch.Tensor, rho_s: torch.Tensor, grid_shape,

@@ -311,12 +311,13 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     noisy = lines * (1 + 0.004 * rng.standard_normal(lines.shape)).astype(np.float32)
     m = m * (1 + 0.02 * rng.standard_normal(m.shape)).astype(np.float32)  # a decoder's error, ~2%
 
-    trials = []
+    trials, pinned = [], []
 
     def errors(prior):  # |log alpha| and relative rho_s errors per texel
         r = fit_ggx(mini, pos, m, lines=noisy, line_weights=w, grid_shape=(R, C),
                     config=FitConfig(alpha_prior=prior, device=device))
         trials.extend(r.info.get("joint_trials", []))
+        pinned.append(r.info.get("joint_pinned"))
         return (np.abs(np.log(np.sqrt(r.alpha_x * r.alpha_y) / np.sqrt(p["alpha_x"] * p["alpha_y"]))),
                 np.abs(r.rho_s.mean(1) / p["rho_s"].mean(1) - 1))
 
@@ -328,17 +329,28 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     assert np.median(rs_joint[weak]) < 0.5 * np.median(rs_alone[weak])
     assert np.median(joint[~weak]) < 0.02 and np.max(np.abs(joint[~weak] - alone[~weak])) < 0.01
     assert np.median(rs_joint[~weak]) < 0.01
-    # the joint prior's damping (Nielsen's rule): a kept trial (F fell, gain ratio rho > 0) scales mu by
-    # max(1/3, 1 - (2 rho - 1)^3), a refused one by nu, which starts at 2 and doubles with each refusal in a row
+    # the glossy texels' photos pin their roughness (fitting._pinned): the joint prior leaves them, and only them
+    assert pinned == [None, int((~weak).sum())]
+    # each trial: [median damping of the free texels, relative change of F, share of them whose model held]
     assert len(trials) >= 3 and trials[0][0] == FitConfig().lm_damping and all(len(t) == 3 for t in trials)
-    nu = 2.0
-    for (mu, change, rho), (mu_next, _, _) in zip(trials, trials[1:]):
-        if change < 0:
-            assert rho > 0 and mu_next == pytest.approx(mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), rel=1e-12)
-            nu = 2.0
-        else:
-            assert mu_next == pytest.approx(mu * nu, rel=1e-12)
-            nu *= 2
+    assert any(change < 0 for _, change, _ in trials) and all(0 <= held <= 1 for _, _, held in trials)
+
+
+def test_pinned_texels_are_those_whose_roughness_the_photos_fix_to_a_quarter_of_tau():
+    """fitting._pinned against the closed form: the variance of the mean log alpha m is the [m, m] entry of the
+    inverse of the texel's 5 x 5 information matrix (every other number free); pinned where its square root is
+    under tau / 4."""
+    from reconstruction.fitting import _pinned
+
+    rng = np.random.default_rng(3)
+    G = rng.standard_normal((400, 5, 12))
+    H = G @ G.transpose(0, 2, 1) * np.exp(rng.uniform(-2, 9, (400, 1, 1)))  # SPD, var(m) over 1e-5 .. 1e1
+    var = np.linalg.inv(H)[:, 2, 2]
+    tau = 0.1
+    got = _pinned(torch.as_tensor(H), tau).numpy()
+    far = np.abs(np.sqrt(var) / (tau / 4) - 1) > 1e-6
+    assert np.array_equal(got[far], (np.sqrt(var) < tau / 4)[far]) and 0 < got.sum() < len(got)
+    assert not _pinned(torch.zeros(1, 5, 5, dtype=torch.float64), tau).any()  # a texel its photos say nothing of
 
 
 def test_diffuse_normal_finds_a_steep_tilt(mini):

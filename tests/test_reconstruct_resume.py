@@ -21,6 +21,10 @@ from reconstruction.output import ReconstructionFolder, stages_folder
 from reconstruction.pipeline import ReconstructConfig, reconstruct
 
 CONFIG = ReconstructConfig(resolution=12)
+# every run here on one torch thread, the CLI's processes too, since their bytes are compared with run A's: on CI's
+# two cores shared with other test processes, torch's default threads made this module's runs up to 10x slower
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+ONE_THREAD = {"OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 # the CLI, with the fit made to wait (so a kill lands in it, after fine-tuning was kept)
 WAITING_FIT = ("import sys, time; import reconstruction.fitting as f; "
                "f.fit_ggx = lambda *a, **k: time.sleep(3600); "
@@ -35,7 +39,7 @@ def _stage_names(folder: Path) -> set:
 
 
 @pytest.fixture(scope="module")
-def run_a(validate_dir, tmp_path_factory):
+def run_a(one_torch_thread, validate_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("resume") / "A"
     reconstruct(validate_dir / "capture", out, CONFIG, progress=False)
     return out
@@ -48,9 +52,8 @@ def _files(folder: Path) -> dict:
 def test_killed_while_fitting_resumes_after_fine_tuning(validate_dir, run_a, tmp_path):
     out = tmp_path / "B"
     stages = stages_folder(out)
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-c", WAITING_FIT, "reconstruct", str(validate_dir / "capture"), "-o",
-                             str(out), "--resolution", "12", "--no-progress"], env=env,
+                             str(out), "--resolution", "12", "--no-progress"], env=dict(os.environ, **ONE_THREAD),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     # in the fit: fine-tuning is kept and its checkpoint forgotten (a kill between the two leaves the checkpoint too)
@@ -199,7 +202,7 @@ def test_killed_while_refitting_resumes_and_gives_the_same_bytes(validate_dir, r
     out, mark = tmp_path / "G", tmp_path / "refit.mark"
     proc = subprocess.Popen([sys.executable, "-c", WAITING_REFIT, str(mark), "reconstruct", str(validate_dir / "capture"),
                              "-o", str(out), "--resolution", "12", "--no-progress"],
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.DEVNULL,
+                            env=dict(os.environ, **ONE_THREAD), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     while time.time() < deadline and not mark.exists() and proc.poll() is None:

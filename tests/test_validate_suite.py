@@ -15,19 +15,7 @@ from twin.materials.samples import SUITE
 HELD_BACK = tuple(f"{name}@{9001 + k}" for k, name in enumerate(SUITE) if k % 2 == 0)
 # Samples that miss the goals today, and why (docs/accuracy.md, "Open"), by their full name: (reason, strict).
 # Strict: one that starts passing fails here until it is taken off this list.
-KNOWN_OPEN = {
-    # not strict: whether a paper sample passes at one capture seed is a coin flip (docs/accuracy.md, "Open"), so
-    # a pass says nothing either way
-    "paper": ("the same character as paper@9003 below; it passed at this capture seed before the alignment's "
-              "information cap by the luck of one noise draw (8.5/9.2% alpha, but 14-22/16-35% at seeds 2 and 3; "
-              "now 19/25%): a 0.01 px change of its alignment moves its alpha median by several points; "
-              "docs/accuracy.md", False),
-    "paper@9003": ("a rough, weak lobe on bright stock (rho_s/rho_d ~ 0.2/0.85: 0.5% of a photo); half its stock "
-                   "lies within two texels of ink or foil, whose light the camera footprint still mixes in after "
-                   "the refit from sharper photos, and the joint prior carries that and the photos' shot noise over "
-                   "the stock (0.5% a photosite: it saturates all but the bracket's shortest exposure, taken 8 "
-                   "times): alpha 8.1/10.7% at capture seed 1; docs/accuracy.md", False),
-}
+KNOWN_OPEN: dict = {}  # none since the joint prior's loop runs to its minimum (docs/accuracy.md, step 15)
 
 
 @pytest.fixture(scope="module")
