@@ -1455,12 +1455,12 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
         actual = (rows - rows_n) / sigma2
         held = torch.isfinite(actual) & ((actual - predicted).abs() <= 0.5 * predicted.abs() + 1e-3)
         refused = not math.isfinite(Fn) or Fn >= F
-        trials.append([float(mu[~frozen].median()) if (~frozen).any() else 0.0,
-                       Fn / F - 1 if math.isfinite(Fn) else None,
-                       float(held[~frozen].double().mean()) if (~frozen).any() else 1.0])
+        # (the loop runs only while some texel is free)
+        trials.append([float(mu[moving].median()), Fn / F - 1 if math.isfinite(Fn) else None,
+                       float(held[moving].double().mean())])
         if refused:
-            mu = torch.where(held, mu, mu * 4) if not bool(held[~frozen].all()) else mu * 4
-            done = bool((mu[~frozen] > 1e10).all()) if (~frozen).any() else True
+            mu = torch.where(held, mu, mu * 4) if not bool(held[moving].all()) else mu * 4
+            done = bool((mu[moving] > 1e10).all())
         else:
             gain = (F - Fn) / scale
             x, F, kept = xn, Fn, kept + 1
