@@ -240,8 +240,9 @@ class FitConfig:
 class FitResult:
     """Per-texel GGX parameters (numpy float32, world frame, the twin's physical units as in SVBRDFMaps):
     normal (N, 3), tangent (N, 3) (the alpha_x axis), alpha_x (N,), alpha_y (N,), rho_d (N, 3), rho_s (N, 3);
-    history: the mean per-texel loss at each step; seconds: wall time of the whole fit; info: method, loss,
-    config, init_seconds, seconds_per_iteration, texel_loss (N,) at the end."""
+    history: the mean per-texel loss at each step (over the texels fitted: a refit's, _fit_direct); seconds: wall
+    time of the whole fit; info: method, loss, config, init_seconds, seconds_per_iteration, texel_loss (N,) at the
+    end, and the direct method's texel_q (N, 5)."""
 
     normal: np.ndarray
     tangent: np.ndarray
@@ -1525,10 +1526,17 @@ def _resumed(checkpoint, prob: _Problem) -> dict | None:
     return state
 
 
-def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None) -> FitResult:
+def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) -> FitResult:
     """Levenberg-Marquardt on the 5 geometry numbers per texel from the best initial candidate, with the
     albedos in closed form at every evaluation (module docstring), in chunks of `batch` texels; then, on a
     grid (grid_shape given), FitConfig.propagation rounds of neighbour propagation (_propagate), and the joint prior.
+    info's texel_q holds the per-texel numbers before the joint prior (what a refit starts from).
+
+    start: None, or a refit (q, redo) of the same texels after the photos of some changed: q (N, 5) an earlier
+    fit's texel_q, redo (N,) bool the texels whose photos changed. Only those are fitted again, from their own
+    initial candidates; every other texel keeps its numbers, which its unchanged photos would give again, and the
+    propagation's first round starts from the refitted texels (ours, issue #14: the refit of the texels next to
+    a brighter highlight, a few % of them, was a whole second fit).
 
     checkpoint: None, or an object with load() -> dict | None and save(dict) where the fit keeps its state as it
     goes: the numbers of the chunks fitted so far (at most every CHECKPOINT_SECONDS), after each propagation round,
@@ -1537,9 +1545,18 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None) -> FitResult:
     later phases on the numbers saved); the state's arrays are numpy, the rest JSON-able."""
     t_start = time.perf_counter()
     c = prob.config
+    redo = None
+    if start is not None:
+        q_start, redo = np.asarray(start[0], np.float32), np.asarray(start[1])
+        if q_start.shape != (prob.n, GEOMETRY_SIZE) or redo.shape != (prob.n,) or redo.dtype != bool \
+                or not np.isfinite(q_start).all():
+            raise ValueError(f"a refit's start must be an earlier fit's finite texel_q ({prob.n}, {GEOMETRY_SIZE}) "
+                             f"and a boolean mask ({prob.n},) of the texels to fit again")
+        redo = torch.as_tensor(redo, device=prob.pos.device)
     state = _resumed(checkpoint, prob)
     if state is None:
-        state = {"phase": "chunks", "chunks_done": 0, "q": np.zeros((prob.n, GEOMETRY_SIZE), np.float32),
+        state = {"phase": "chunks", "chunks_done": 0,
+                 "q": np.zeros((prob.n, GEOMETRY_SIZE), np.float32) if start is None else q_start.copy(),
                  "history": np.zeros(c.steps), "restarted": [],
                  "seconds": {"init": 0.0, "iterations": 0.0, "propagation": 0.0, "joint": 0.0}}
     seconds = state["seconds"]
@@ -1552,7 +1569,8 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None) -> FitResult:
             checkpoint.save(state)
 
     last_save = time.perf_counter()
-    chunks = _chunks(prob, c.batch)
+    chunks = _chunks(prob, c.batch) if redo is None else \
+        [k for k in torch.nonzero(redo).flatten().split(_chunk_size(prob, c.batch)) if k.numel()]
     for k in range(state["chunks_done"] if state["phase"] == "chunks" else len(chunks), len(chunks)):
         idx = chunks[k]
         part = prob.part(idx)
@@ -1571,16 +1589,18 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None) -> FitResult:
     restarted = state["restarted"]
     if state["phase"] in ("chunks", "propagation"):
         changed = state.get("changed")  # None: the first round, or a checkpoint saved before rounds kept it
-        changed = torch.as_tensor(np.asarray(changed), device=q.device) if restarted and changed is not None else None
+        # the first round tries every texel, a refit's only those next to the texels it fitted again
+        changed = torch.as_tensor(np.asarray(changed), device=q.device) if restarted and changed is not None else redo
         for _ in range(c.propagation - len(restarted) if grid_shape is not None else 0):
-            if restarted and not restarted[-1]:
-                break
+            if (restarted and not restarted[-1]) or (changed is not None and not bool(changed.any())):
+                break  # the last round moved nothing, or a refit fitted nothing again
             t2 = time.perf_counter()
             q, moved, changed = _propagate(prob, q, grid_shape, changed)
             restarted.append(moved)
             seconds["propagation"] += time.perf_counter() - t2
             save(restarted=restarted, changed=changed.cpu().numpy())
     t3 = time.perf_counter()
+    texel_q = q.cpu().numpy().copy()
     parts = _final(prob, q)
     prior = {}
     joint_before = seconds["joint"]
@@ -1603,10 +1623,11 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None) -> FitResult:
     geom = {k: torch.cat([p[0][k] for p in parts]) for k in parts[0][0]}
     info = {"init_seconds": seconds["init"], "seconds_per_iteration": seconds["iterations"] / max(c.steps, 1),
             "propagation_seconds": seconds["propagation"], "propagation_restarts": restarted,
-            "joint_seconds": seconds["joint"], **prior,
+            "joint_seconds": seconds["joint"], **prior, "texel_q": texel_q,
             "texel_loss": torch.cat([p[1] for p in parts]).cpu().numpy()}
+    fitted = prob.n if redo is None else int(redo.sum())
     return _result(prob, geom, torch.cat([p[2] for p in parts]), torch.cat([p[3] for p in parts]),
-                   history / prob.n, t_start, info)
+                   history / max(fitted, 1), t_start, info)
 
 
 def _linear(a: int, b: int, generator: torch.Generator) -> nn.Linear:
@@ -1700,22 +1721,22 @@ FITTING_METHODS = {"direct": _fit_direct, "neural": _fit_neural}
 
 
 def fit_method(rig, positions, lumitexels, *, method: str | None = None, lines=None, line_weights=None,
-               secondary=None, grid_shape=None, config: FitConfig = FitConfig(), checkpoint=None) -> FitResult:
+               secondary=None, grid_shape=None, config: FitConfig = FitConfig(), checkpoint=None,
+               start=None) -> FitResult:
     """Dispatch to FITTING_METHODS[method] (None: config.method) after checking the inputs (fit_ggx)."""
     if not isinstance(config, FitConfig):
         raise ValueError(f"config must be a FitConfig, got {type(config).__name__}")
     if method is not None and method != config.method:
         config = replace(config, method=method)
-    if checkpoint is not None and config.method != "direct":
-        raise ValueError(f"a checkpoint resumes the direct method only, not {config.method!r}")
+    direct = {k: v for k, v in (("checkpoint", checkpoint), ("start", start)) if v is not None}
+    if direct and config.method != "direct":
+        raise ValueError(f"a checkpoint or a refit's start belongs to the direct method only, not {config.method!r}")
     prob = _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config, secondary)
-    if checkpoint is not None:
-        return FITTING_METHODS[config.method](prob, grid_shape, checkpoint)
-    return FITTING_METHODS[config.method](prob, grid_shape)
+    return FITTING_METHODS[config.method](prob, grid_shape, **direct)
 
 
 def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, secondary=None, grid_shape=None,
-            config: FitConfig = FitConfig(), checkpoint=None) -> FitResult:
+            config: FitConfig = FitConfig(), checkpoint=None, start=None) -> FitResult:
     """Fit anisotropic GGX and the local frame per texel (module docstring) with config.method.
 
     positions (N, 3) mm, world; lumitexels (N, L_upper, 3) in network units (upper LEDs in rig order,
@@ -1727,10 +1748,12 @@ def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, second
     patterns' + and - frames); secondary (photos (N, K2, 3), weights (K2, L_upper, 3)) the same for
     config.secondary_camera (optional; each camera's photos weigh lambda_lines in the loss); grid_shape (R, C)
     with N = R C in row-major order, needed by method "neural"; checkpoint (direct method): where the fit keeps its
-    state so that a killed fit resumes (_fit_direct). Raises ValueError on NaN/Inf or mis-shaped input (a source's,
-    when the fit asks for those texels). Deterministic on the CPU: the same inputs and seed give the same result."""
+    state so that a killed fit resumes (_fit_direct); start (direct method): a refit of some texels after their
+    photos changed, from an earlier fit's numbers (_fit_direct). Raises ValueError on NaN/Inf or mis-shaped input (a
+    source's, when the fit asks for those texels). Deterministic on the CPU: the same inputs and seed give the same
+    result."""
     return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary,
-                      grid_shape=grid_shape, config=config, checkpoint=checkpoint)
+                      grid_shape=grid_shape, config=config, checkpoint=checkpoint, start=start)
 
 
 # --- export ----------------------------------------------------------------------------------------------

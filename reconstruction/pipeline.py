@@ -306,9 +306,10 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     timings["fitting_s"] = time.perf_counter() - t + checkpoint.earlier
     if checkpoint.loaded is not None:
         resumed.append(f"fitting ({checkpoint.loaded})")
-    # the refit is a whole fit, initial candidates included: started from the first fit's numbers instead, paper's
-    # flat alpha landscape kept its texels in the first fit's basins (alpha 11.5 / 12.9% against 8.5 / 9.2%,
-    # docs/accuracy.md)
+    # the refit fits the texels next to a brighter highlight again from their own initial candidates: started from
+    # the first fit's numbers instead, paper's flat alpha landscape kept them in the first fit's basins (alpha
+    # 11.5 / 12.9% against 8.5 / 9.2%, docs/accuracy.md); every other texel keeps its own numbers (its photos are
+    # the same), and the neighbour propagation and the joint priors run again over all (_fit_direct's start)
     spill = np.zeros(grid.shape, bool) if config.spill_ratio is None else spill_texels(fit, grid.shape,
                                                                                        config.spill_ratio)
     if spill.any():
@@ -319,8 +320,9 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         secondary = np.where(on, sharp.learned_photos[:, 1], meas.learned_photos[:, 1])
         checkpoint = _Checkpoint(stages, "refit_state", _key(key, asdict(fit_cfg), config.spill_ratio))
         fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
-                      secondary=(secondary, meas.learned_weights), grid_shape=grid.shape,
-                      config=fit_cfg, checkpoint=checkpoint if fit_cfg.method == "direct" else None)
+                      secondary=(secondary, meas.learned_weights), grid_shape=grid.shape, config=fit_cfg,
+                      checkpoint=checkpoint if fit_cfg.method == "direct" else None,
+                      start=(fit.info["texel_q"], spill.reshape(-1)) if fit_cfg.method == "direct" else None)
         timings["refit_s"] = time.perf_counter() - t + checkpoint.earlier
         if checkpoint.loaded is not None:
             resumed.append(f"refit ({checkpoint.loaded})")
@@ -334,7 +336,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
                "texels": int(meas.valid.size), "holdout_line": hold, "spill_texels": int(spill.sum()),
                "timings_s": timings,
                "finetune": _jsonable(ft_info), "resumed": resumed,
-               "fit": _jsonable({k: v for k, v in fit.info.items() if k != "texel_loss"}),
+               "fit": _jsonable({k: v for k, v in fit.info.items() if k not in ("texel_loss", "texel_q")}),
                "alignment": _jsonable(alignment.info)}
     out.write_summary(summary)
     return Reconstruction(out.dir, meas, latent, maps, hold, timings, alignment, model)

@@ -336,6 +336,46 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     assert any(change < 0 for _, change, _ in trials) and all(0 <= held <= 1 for _, _, held in trials)
 
 
+def test_a_refit_fits_again_only_the_texels_whose_photos_changed(mini, monkeypatch):
+    """_fit_direct's start (the pipeline's refit of the texels next to a brighter highlight): after the photos of
+    some texels change, only those go through the initial candidates and Levenberg-Marquardt again, and the refit
+    ends where a whole fit of the new photos ends (each texel's own fit depends on its own photos; propagation and
+    the joint prior run over all). A 4 x 6 grid of paper stock beside a glossy ink, photos with 0.4% seeded noise;
+    then the stock's first column gets a glossier lobe's photos (alpha_y 0.2 instead of 0.45)."""
+    R, C = 4, 6
+    p, weak = weak_beside_glossy(mini, (R, C), 40.0, 3, 0.45)
+    m, lines, w = _targets(mini, p)
+    noise = (1 + 0.004 * np.random.default_rng(11).standard_normal(lines.shape)).astype(np.float32)
+    redo = np.repeat(np.arange(C)[None] == 0, R, 0).ravel()
+    p2 = {**p, "alpha_y": np.where(redo, 0.2, p["alpha_y"])}
+    m2, lines2, _ = _targets(mini, p2)
+    cfg = FitConfig(alpha_prior=0.05)
+    first = fit_ggx(mini, p["position"], m, lines=lines * noise, line_weights=w, grid_shape=(R, C), config=cfg)
+    whole = fit_ggx(mini, p["position"], m2, lines=lines2 * noise, line_weights=w, grid_shape=(R, C), config=cfg)
+    sizes, initial = [], fitting._initial
+
+    def spy(part):
+        sizes.append(part.n)
+        return initial(part)
+
+    monkeypatch.setattr(fitting, "_initial", spy)
+    refit = fit_ggx(mini, p["position"], m2, lines=lines2 * noise, line_weights=w, grid_shape=(R, C), config=cfg,
+                    start=(first.info["texel_q"], redo))
+    assert sizes == [int(redo.sum())]
+    # float32 products of other chunk sizes round differently (~1e-5); a texel left at its old numbers would be off
+    # by the change of its roughness, log(0.45 / 0.2) / 2 = 0.4 in the mean log alpha
+    np.testing.assert_allclose(refit.info["texel_q"], whole.info["texel_q"], rtol=0, atol=1e-3)
+    for k in ("alpha_x", "alpha_y", "rho_s", "normal"):
+        np.testing.assert_allclose(getattr(refit, k), getattr(whole, k), rtol=1e-3, atol=1e-4, err_msg=k)
+    # unchanged photos: nothing to fit again, nothing moves
+    again = fit_ggx(mini, p["position"], m, lines=lines * noise, line_weights=w, grid_shape=(R, C), config=cfg,
+                    start=(first.info["texel_q"], np.zeros(R * C, bool)))
+    np.testing.assert_allclose(again.alpha_x, first.alpha_x, rtol=1e-4)
+    with pytest.raises(ValueError, match="refit's start"):
+        fit_ggx(mini, p["position"], m, lines=lines, line_weights=w, grid_shape=(R, C), config=cfg,
+                start=(first.info["texel_q"][:-1], redo))
+
+
 def test_pinned_texels_are_those_whose_roughness_the_photos_fix_to_a_quarter_of_tau():
     """fitting._pinned against the closed form: the variance of the mean log alpha m is the [m, m] entry of the
     inverse of the texel's 5 x 5 information matrix (every other number free); pinned where its square root is
