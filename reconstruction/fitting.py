@@ -1553,11 +1553,16 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) ->
             raise ValueError(f"a refit's start must be an earlier fit's finite texel_q ({prob.n}, {GEOMETRY_SIZE}) "
                              f"and a boolean mask ({prob.n},) of the texels to fit again")
         redo = torch.as_tensor(redo, device=prob.pos.device)
+    refitted = None if redo is None else int(redo.sum())
     state = _resumed(checkpoint, prob)
+    if state is not None and state.get("refitted") != refitted:
+        # another kind of fit's state under this key: a refit's saved before refits kept the other texels' numbers
+        # (its chunks covered every texel), or a whole fit's; a refit takes seconds, so it starts again
+        state = None
     if state is None:
         state = {"phase": "chunks", "chunks_done": 0,
                  "q": np.zeros((prob.n, GEOMETRY_SIZE), np.float32) if start is None else q_start.copy(),
-                 "history": np.zeros(c.steps), "restarted": [],
+                 "history": np.zeros(c.steps), "restarted": [], "refitted": refitted,
                  "seconds": {"init": 0.0, "iterations": 0.0, "propagation": 0.0, "joint": 0.0}}
     seconds = state["seconds"]
     history = np.array(state["history"], dtype=np.float64)

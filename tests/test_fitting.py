@@ -367,6 +367,26 @@ def test_a_refit_fits_again_only_the_texels_whose_photos_changed(mini, monkeypat
     np.testing.assert_allclose(refit.info["texel_q"], whole.info["texel_q"], rtol=0, atol=1e-3)
     for k in ("alpha_x", "alpha_y", "rho_s", "normal"):
         np.testing.assert_allclose(getattr(refit, k), getattr(whole, k), rtol=1e-3, atol=1e-4, err_msg=k)
+    # a refit's state saved before refits kept the other texels' numbers (its chunks covered every texel; none done)
+    # is not resumed, which would leave those texels at zero: the refit starts again and gives the same numbers
+    class Saved:
+        def __init__(self, state):
+            self.state = state
+
+        def load(self):
+            return self.state
+
+        def save(self, state):
+            self.state = state
+
+    old = Saved({"phase": "chunks", "chunks_done": 0, "q": np.zeros((R * C, fitting.GEOMETRY_SIZE), np.float32),
+                 "history": np.zeros(cfg.steps), "restarted": [],
+                 "seconds": {"init": 0.0, "iterations": 0.0, "propagation": 0.0, "joint": 0.0}})
+    resumed = fit_ggx(mini, p["position"], m2, lines=lines2 * noise, line_weights=w, grid_shape=(R, C), config=cfg,
+                      start=(first.info["texel_q"], redo), checkpoint=old)
+    np.testing.assert_array_equal(resumed.info["texel_q"], refit.info["texel_q"])
+    np.testing.assert_array_equal(resumed.alpha_x, refit.alpha_x)
+    assert old.state["refitted"] == int(redo.sum())
     # unchanged photos: nothing to fit again, nothing moves
     again = fit_ggx(mini, p["position"], m, lines=lines * noise, line_weights=w, grid_shape=(R, C), config=cfg,
                     start=(first.info["texel_q"], np.zeros(R * C, bool)))
