@@ -1630,9 +1630,8 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) ->
             "propagation_seconds": seconds["propagation"], "propagation_restarts": restarted,
             "joint_seconds": seconds["joint"], **prior, "texel_q": texel_q,
             "texel_loss": torch.cat([p[1] for p in parts]).cpu().numpy()}
-    fitted = prob.n if redo is None else int(redo.sum())
     return _result(prob, geom, torch.cat([p[2] for p in parts]), torch.cat([p[3] for p in parts]),
-                   history / max(fitted, 1), t_start, info)
+                   history / max(prob.n if refitted is None else refitted, 1), t_start, info)
 
 
 def _linear(a: int, b: int, generator: torch.Generator) -> nn.Linear:

@@ -299,10 +299,11 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     # suite sample's alpha median improves or holds, docs/accuracy.md)
     fit_cfg = replace(config.fit, device=config.device,
                       lambda_lines=config.fit.lambda_lines * session.frames_per_exposure)
+    direct = fit_cfg.method == "direct"  # the method that keeps a checkpoint and refits from the first fit's numbers
     checkpoint = _Checkpoint(stages, "fit_state", _key(key, asdict(fit_cfg)))
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                   secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,
-                  config=fit_cfg, checkpoint=checkpoint if fit_cfg.method == "direct" else None)
+                  config=fit_cfg, checkpoint=checkpoint if direct else None)
     timings["fitting_s"] = time.perf_counter() - t + checkpoint.earlier
     if checkpoint.loaded is not None:
         resumed.append(f"fitting ({checkpoint.loaded})")
@@ -321,8 +322,8 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         checkpoint = _Checkpoint(stages, "refit_state", _key(key, asdict(fit_cfg), config.spill_ratio))
         fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                       secondary=(secondary, meas.learned_weights), grid_shape=grid.shape, config=fit_cfg,
-                      checkpoint=checkpoint if fit_cfg.method == "direct" else None,
-                      start=(fit.info["texel_q"], spill.reshape(-1)) if fit_cfg.method == "direct" else None)
+                      checkpoint=checkpoint if direct else None,
+                      start=(fit.info["texel_q"], spill.reshape(-1)) if direct else None)
         timings["refit_s"] = time.perf_counter() - t + checkpoint.earlier
         if checkpoint.loaded is not None:
             resumed.append(f"refit ({checkpoint.loaded})")
