@@ -24,10 +24,18 @@ def reference_present() -> bool:
     return (REFERENCE_DIR / "lights.bin").is_file()
 
 
+# The files that take longest on one core, longest first (CI's `--durations`, docs/performance.md "CI"): the material
+# suite (~14 min in CI, its own two processes), then those of a minute or more. pytest-xdist hands whole files to its
+# processes in collection order (the Makefile turns off its own reordering by test count, which queued these last),
+# so the short files are left to fill both cores at the end instead of one long file running on alone.
+LONG_FILES = ("test_validate_suite.py", "test_scaleout.py", "test_hardware_capture.py", "test_capture.py",
+              "test_alignment.py", "test_validate.py", "test_train.py", "test_design.py", "test_reconstruct_resume.py")
+
+
 def pytest_collection_modifyitems(items):
-    """The material suite first (stable otherwise): it is the longest file by far, and pytest-xdist hands files to
-    its processes in this order, so started last it would run on alone after every other file had finished."""
-    items.sort(key=lambda item: item.path.name != "test_validate_suite.py")
+    """The long files first, longest first (LONG_FILES); the rest in their own order."""
+    rank = {name: k for k, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))
 
 
 @pytest.fixture(scope="session")
