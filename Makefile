@@ -10,8 +10,8 @@ BIN    := $(VENV)/bin
 TORCH_SPEC ?= torch==2.13.0
 # The tests run in one process per core (pytest-xdist, at most 4), a test file per process: the Warp CPU kernels
 # are single-threaded, so one process leaves the other cores of CI's two idle. PYTEST_WORKERS= runs them in one.
-# --no-loadscope-reorder: files in tests/conftest.py's order (the longest first); xdist's own order, by test count,
-# queued the few-test long files last. Stable otherwise.
+# --no-loadscope-reorder (xdist >= 3.8): the files in tests/conftest.py's order, the longest first; xdist's default
+# order, by test count, queued the long files with few tests last.
 PYTEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder
 # --durations: the 25 slowest tests end every log, CI's included (what its 20 minutes go to: docs/performance.md)
 

@@ -24,8 +24,8 @@ def reference_present() -> bool:
     return (REFERENCE_DIR / "lights.bin").is_file()
 
 
-# The files that take longest on one core, longest first (CI's `--durations`, docs/performance.md "CI"): the material
-# suite (~14 min in CI, its own two processes), then those of a minute or more. pytest-xdist hands whole files to its
+# The files that take longest, longest first (CI's `--durations`, docs/performance.md "CI"): the material suite
+# (10-14 min in CI, in its own two processes), then those of a minute or more on one core. pytest-xdist hands whole files to its
 # processes in collection order (the Makefile turns off its own reordering by test count, which queued these last),
 # so the short files are left to fill both cores at the end instead of one long file running on alone.
 LONG_FILES = ("test_validate_suite.py", "test_scaleout.py", "test_hardware_capture.py", "test_capture.py",
