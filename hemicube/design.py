@@ -68,8 +68,8 @@ def train_config(design, out: Path, seed: int, device: str = "cpu", steps: int |
     """The TrainConfig that trains `design`'s network with training seed `seed`: the design's rig (written to
     out/rig, camera moves included), its LEDs left off, its fixed patterns (out/fixed_patterns.npz) or K learned
     ones, its training distribution and budget (`steps` overrides it)."""
-    from reconstruction.data import SamplingConfig
-    from reconstruction.train import TrainConfig
+    from reconstruction.network.data import SamplingConfig
+    from reconstruction.network.train import TrainConfig
     from twin.capture.pattern_sets import signed_pairs
     from twin.capture.patterns import save_patterns
     from twin.rig.format import save_rig
@@ -97,8 +97,8 @@ def train_config(design, out: Path, seed: int, device: str = "cpu", steps: int |
 def _train_runs(design, out: Path, device: str, progress: bool) -> tuple[list[float], float, object]:
     """Train one network per seed (resumable: a finished run is read back), score each on the test texels;
     the measurement-blind predictor's loss on them; the first seed's model."""
-    from reconstruction.data import SamplingConfig, heldout_set
-    from reconstruction.train import blind_loss, heldout_losses, load_run_model, train
+    from reconstruction.network.data import SamplingConfig, heldout_set
+    from reconstruction.network.train import blind_loss, heldout_losses, load_run_model, train
 
     tr = design.training
     test = heldout_set(design.rig, SamplingConfig(materials=tr.materials(tr.test_distribution, test=True)),
@@ -118,7 +118,7 @@ def _train_runs(design, out: Path, device: str, progress: bool) -> tuple[list[fl
 
 def _train_one(config, run: Path) -> None:
     """One training run (a worker process of `evaluate`'s --jobs)."""
-    from reconstruction.train import train
+    from reconstruction.network.train import train
 
     train(config, run, progress=False)
 
@@ -144,7 +144,7 @@ def optimise(path: str, output, device: str = "cpu", steps: int | None = None, s
     """Train a design's patterns and network on its training distribution (`hemicube design optimise`): a
     resumable `hemicube train` run in OUTPUT/run whose patterns.npz goes to `hemicube capture --patterns` and
     whose folder to `hemicube reconstruct --network`."""
-    from reconstruction.train import train
+    from reconstruction.network.train import train
     from twin.design.design_file import load_design
 
     design = load_design(path)
@@ -170,7 +170,7 @@ def _map_errors(design, run: Path, patterns, samples, out: Path, device: str, pr
     median (alpha: of alpha_x's and alpha_y's), the validation goals missed in all, and the per-sample
     metrics."""
     from hemicube.validate import end_to_end
-    from reconstruction.metrics import flatten_metrics
+    from reconstruction.evaluation.metrics import flatten_metrics
 
     per = {}
     for i, name in enumerate(samples):  # a folder of its own per sample, named after it (a sample folder by its name)
@@ -193,8 +193,8 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
     names) also the map errors through the twin, on a `maps_resolution`^2 texture grid (None: the pipeline's)."""
     import torch
 
-    from reconstruction.data import LUMITEXEL_SCALE, SamplingConfig, heldout_set
-    from reconstruction.train import export_patterns
+    from reconstruction.network.data import LUMITEXEL_SCALE, SamplingConfig, heldout_set
+    from reconstruction.network.train import export_patterns
     from twin.capture.pattern_sets import signed_weights
     from twin.capture.plan import photo_exposures
     from twin.design.costs import led_duty, photo_seconds, upload_cost

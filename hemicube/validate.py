@@ -5,7 +5,7 @@
 2. end to end: a virtual capture of the sample (`twin.capture.runner`, seed 1) -> the reconstruction pipeline
    (`reconstruction.pipeline`: alignment, extraction, decode with the shipped network, three-pass
    fine-tuning, GGX fitting) -> the score against the capture's ground truth
-   (`reconstruction.validation`), with the thresholds of `reconstruction.validation.thresholds_for` (stated
+   (`reconstruction.evaluation.validation`), with the thresholds of `reconstruction.evaluation.validation.thresholds_for` (stated
    there and in docs/accuracy.md).
 Writes OUTPUT/capture, OUTPUT/reconstruction and OUTPUT/report (report.md, metrics.json, images/); prints a
 metrics table. Exit code non-zero when a check or a threshold fails. Without -o, OUTPUT is
@@ -44,10 +44,10 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int 
     taken that many times (twin.capture.plan.bracket_frames)."""
     from dataclasses import replace
 
-    from reconstruction.metrics import check
+    from reconstruction.evaluation.metrics import check
     from reconstruction.pipeline import ReconstructConfig, reconstruct
-    from reconstruction.report import write_report
-    from reconstruction.validation import evaluate, thresholds_for
+    from reconstruction.evaluation.report import write_report
+    from reconstruction.evaluation.validation import evaluate, thresholds_for
     from twin.capture.runner import SAMPLE_RESOLUTION, capture
 
     resolution = resolution or ReconstructConfig.resolution
@@ -131,7 +131,7 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
     docstring). Exit code 0 when every check and every threshold passes. On the CPU, a rig whose capture
     would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
     import twin
-    from reconstruction.metrics import format_table
+    from reconstruction.evaluation.metrics import format_table
     from twin.capture.plan import check_frames
     from twin.capture.runner import SAMPLE_RESOLUTION
     from twin.materials.samples import load_sample
@@ -265,7 +265,7 @@ def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int
 
 def suite_table(results: list[dict]) -> str:
     """One row per sample, one column per thresholded metric: the value, with '!' where it misses."""
-    from reconstruction.metrics import _fmt_value
+    from reconstruction.evaluation.metrics import _fmt_value
 
     metrics = list(dict.fromkeys(r["metric"] for res in results for r in res["rows"]))
     short = [m.replace("maps.", "").replace("_pct.median", "%").replace("_deg.median", "°")
@@ -287,7 +287,7 @@ def write_suite_report(out_dir: Path, rig_name: str, results: list[dict], checks
     images/<sample>_<panel>.png. Written whole (twin.atomic.atomic_folder)."""
     import shutil
 
-    from reconstruction.metrics import _fmt_value, to_jsonable
+    from reconstruction.evaluation.metrics import _fmt_value, to_jsonable
     from twin.atomic import atomic_folder, write_bytes_atomic
 
     ok = all(c.passed for c in checks) and all(r["passed"] for r in results)

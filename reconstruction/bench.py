@@ -1,7 +1,7 @@
 """`hemicube bench reconstruct`: seconds of the per-texel stages (decode, fine-tuning, GGX fitting) on
 synthetic texels of a rig, extrapolated to a 1024^2 sample, with the reference's batching as the baseline.
 
-The texels are drawn from the training distribution (reconstruction.data.sample_parameters, seeded); their
+The texels are drawn from the training distribution (reconstruction.network.data.sample_parameters, seeded); their
 learned measurements and line measurements are rendered by the forward model, exactly (no photo noise).
 The network is the rig's shipped one, a `hemicube train` run (--network), or else a seeded untrained network
 of the rig's size: speed does not depend on the weights, accuracy does, so accuracy is not scored here
@@ -47,7 +47,7 @@ def _texels(rig, model, n: int, seed: int, device: str, exact: bool):
     import twin
     from twin.capture.pattern_sets import linear_lights
 
-    from .data import LUMITEXEL_SCALE, SamplingConfig, _generator, sample_parameters, synthesize
+    from reconstruction.network.data import LUMITEXEL_SCALE, SamplingConfig, _generator, sample_parameters, synthesize
 
     p = sample_parameters(n, SamplingConfig(), rig, _generator(seed, "bench", 0))
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
@@ -99,14 +99,14 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
 
     import twin
 
-    from .data import _wp_device
+    from reconstruction.network.data import _wp_device
     from twin.bench import PeakDeviceMemory, finish_checks, same_work
 
-    from .finetune import FinetuneConfig
-    from .fitting import FitConfig
-    from .network import AcquisitionNet, count_parameters
-    from .pipeline import load_network
-    from .train import TrainConfig
+    from reconstruction.stages.finetune import FinetuneConfig
+    from reconstruction.stages.fitting import FitConfig
+    from reconstruction.network.architecture import AcquisitionNet, count_parameters
+    from reconstruction.pipeline import load_network
+    from reconstruction.network.train import TrainConfig
 
     _positive_int("texels", texels)
     rig = twin.load_rig(rig_name)
@@ -180,9 +180,9 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
 
     from twin.bench import same_work
 
-    from .finetune import PRECISIONS, FinetuneConfig, _sync, decoded_lumitexels, finetune, simulate_lines
-    from .fitting import FitConfig, fit_ggx
-    from .latents import decode
+    from reconstruction.stages.finetune import PRECISIONS, FinetuneConfig, _sync, decoded_lumitexels, finetune, simulate_lines
+    from reconstruction.stages.fitting import FitConfig, fit_ggx
+    from reconstruction.stages.latents import decode
 
     def sync():  # timings must include the queued GPU work
         _sync(torch.device(dev))
@@ -246,7 +246,7 @@ def _timed_stages(model, rig, learned, lines, pos, W, exact, dev: str, baseline_
 def _median_line_energy(model, latent, lines, W) -> float:
     """The median over the texels of the fine-tuning objective (reference §4's sum over the lines and channels of
     (sqrt(M_sim) - sqrt(M_photo))^2, finetune's sqrt_eps) at a latent, the held-out line 0 left out as in the run."""
-    from .finetune import FinetuneConfig, simulate_lines
+    from reconstruction.stages.finetune import FinetuneConfig, simulate_lines
 
     eps = FinetuneConfig().sqrt_eps
     sim = simulate_lines(model, latent, W)[:, 1:]
@@ -281,7 +281,7 @@ def _random_points(rig, texels: int, seed: int, device: str):
 
 def bench_fit_forward(rig_name="mini", device="cpu", texels=2304, repeats=5, seed=0) -> dict:
     """`hemicube bench fit-forward`: seconds of one evaluation of the forward model as the GGX fit makes it
-    (reconstruction.fitting._lumitexels: unit diffuse and specular albedo, the rig's upper LEDs, without
+    (reconstruction.stages.fitting._lumitexels: unit diffuse and specular albedo, the rig's upper LEDs, without
     gradients), against the same-run baseline of the path the fit took before: the autograd bridge's tape and
     copies (twin.optics.torch_ops.WarpForward) over all of the rig's LEDs, then the upper ones selected. The
     two must agree to the bit (rtol 0): they run the same kernel on the same numbers."""
@@ -334,14 +334,14 @@ def bench_fit_forward(rig_name="mini", device="cpu", texels=2304, repeats=5, see
 # median 5e-4): the analytic Jacobian's median relative difference to them must stay <= 2e-3, which a 1% error of
 # the analytic one exceeds five times (tests/test_bench.py).
 JACOBIAN_MEDIAN_BOUND = 2e-3
-# The fit's Gauss-Newton system (J J^T, J r) summed in Warp (reconstruction.fit_sums) against the products of the stored
+# The fit's Gauss-Newton system (J J^T, J r) summed in Warp (reconstruction.stages.fit_sums) against the products of the stored
 # Jacobian: the same float32 numbers summed in another order, ~1e-6 relative apart (tests/test_fit_sums.py: 1e-12 in
 # float64); a wrong row or factor is off by far more than the bound.
 NORMAL_EQUATIONS_BOUND = 1e-4
 
 
 def bench_fit_jacobian(rig_name="mini", device="cpu", texels=2304, repeats=3, seed=0) -> dict:
-    """`hemicube bench fit-jacobian`: seconds of one Jacobian of the GGX fit's residuals (reconstruction.fitting:
+    """`hemicube bench fit-jacobian`: seconds of one Jacobian of the GGX fit's residuals (reconstruction.stages.fitting:
     the lumitexels and both views' photos under the linear lights, albedos in closed form) at a perturbed geometry,
     analytic (FitConfig.jacobian "analytic": twin.optics.jvp and variable projection) against the same-run
     baseline of forward differences ("forward", five more evaluations of the residuals), and one evaluation of the
@@ -359,8 +359,8 @@ def bench_fit_jacobian(rig_name="mini", device="cpu", texels=2304, repeats=3, se
     import twin
     from twin.capture.pattern_sets import linear_lights
 
-    from . import fitting as F
-    from .data import LUMITEXEL_SCALE
+    from reconstruction.stages import fitting as F
+    from reconstruction.network.data import LUMITEXEL_SCALE
 
     rig = twin.load_rig(rig_name)
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))

@@ -15,7 +15,7 @@ def _ratio(text: str) -> float:
 
 
 def cmd_reconstruct(args) -> int:
-    from .pipeline import ReconstructConfig, reconstruct
+    from reconstruction.pipeline import ReconstructConfig, reconstruct
 
     over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm),
                               ("holdout_line", args.holdout_line), ("network", args.network),
@@ -33,7 +33,7 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from .train import TrainConfig, train
+    from reconstruction.network.train import TrainConfig, train
 
     cfg = TrainConfig(rig=args.rig)
     over = {k: v for k, v in (("steps", args.steps), ("batch", args.batch), ("lr", args.lr), ("seed", args.seed),
@@ -52,7 +52,7 @@ def cmd_train(args) -> int:
     finally:
         import torch.distributed as dist
 
-        if dist.is_initialized():  # under torchrun (reconstruction.distributed)
+        if dist.is_initialized():  # under torchrun (reconstruction.network.distributed)
             dist.destroy_process_group()
     if not m:  # a rank other than 0: rank 0 reports
         return 0
@@ -67,13 +67,13 @@ def cmd_train(args) -> int:
 
 def cmd_network(args) -> int:
     """`hemicube network score RUN`: score_network's figures of a run's network (JSON); `hemicube network ship
-    RUN`: make the shipped files from it (reconstruction.pretrained)."""
+    RUN`: make the shipped files from it (reconstruction.network.shipped)."""
     import torch
 
     import twin
 
-    from .pretrained import score_network, ship_network
-    from .train import CHECKPOINT_JSON, TrainConfig, load_run_model
+    from reconstruction.network.shipped import score_network, ship_network
+    from reconstruction.network.train import CHECKPOINT_JSON, TrainConfig, load_run_model
 
     if args.network_command == "ship":
         info = ship_network(args.run, args.output, args.device, args.commit)
@@ -89,8 +89,8 @@ def cmd_network(args) -> int:
 def cmd_reconstruct_many(args) -> int:
     from twin.batch import RECORD_FILE, options_from, report
 
-    from .many import reconstruct_many, table
-    from .pipeline import ReconstructConfig
+    from reconstruction.many import reconstruct_many, table
+    from reconstruction.pipeline import ReconstructConfig
 
     over = {k: v for k, v in (("resolution", args.resolution), ("size_mm", args.size_mm), ("network", args.network),
                               ("device", args.device)) if v is not None}
@@ -100,7 +100,7 @@ def cmd_reconstruct_many(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import bench_fit_forward, bench_fit_jacobian, bench_reconstruct
+    from reconstruction.bench import bench_fit_forward, bench_fit_jacobian, bench_reconstruct
 
     from twin.bench import bench_exit
 
@@ -116,10 +116,10 @@ def cmd_bench(args) -> int:
 
 def register(sub) -> None:
     """Add the reconstruction's sub-commands to the front's parser."""
-    from .extraction import FOOTPRINTS
-    from .finetune import PRECISIONS
-    from .pipeline import FINETUNE_PHOTOS, ReconstructConfig
-    from .train import TrainConfig
+    from reconstruction.stages.extraction import FOOTPRINTS
+    from reconstruction.stages.finetune import PRECISIONS
+    from reconstruction.pipeline import FINETUNE_PHOTOS, ReconstructConfig
+    from reconstruction.network.train import TrainConfig
 
     rc, tc = ReconstructConfig(), TrainConfig()
     s = sub.add_parser("reconstruct", help="capture folder -> latents and OpenSVBRDF maps")
@@ -186,7 +186,7 @@ def register(sub) -> None:
                    f"{tc.patterns_per_view}, the released network's)")
     s.add_argument("--materials", help="training materials: '' uniform GGX ranges (default), 'suite:SEEDS' the "
                    "material suite's compositions (database-like), 'maps:DIR' folders of OpenSVBRDF maps "
-                   "(reconstruction.data.SamplingConfig.materials)")
+                   "(reconstruction.network.data.SamplingConfig.materials)")
     s.add_argument("--time-limit", type=float, metavar="SECONDS", help="checkpoint and stop after this many "
                    "seconds (re-run to resume): chunks for lent machines (default: none)")
     s.add_argument("-o", "--output", required=True, help="run folder (re-run to resume)")

@@ -17,8 +17,8 @@ from pathlib import Path
 
 from twin.batch import LOG_FOLDER, RECORD_FILE, BatchOptions, Job, outcomes_table, recorded_results, run_batch
 
-from .output import ReconstructionFolder
-from .pipeline import ReconstructConfig, _jsonable
+from reconstruction.output import ReconstructionFolder
+from reconstruction.pipeline import ReconstructConfig, _jsonable
 
 # the scores shown in the table: (header, key of the task's result)
 COLUMNS = [("texels", "texels"), ("align px", "alignment.median_px"), ("normal deg", "maps.normal_deg.median"),
@@ -29,9 +29,9 @@ COLUMNS = [("texels", "texels"), ("align px", "alignment.median_px"), ("normal d
 
 def reconstruct_one(capture: str, output: str, config: dict) -> dict:
     """A Ray task: reconstruct one capture and score it when it carries ground truth (flat result dict)."""
-    from reconstruction.metrics import check, flatten_metrics
+    from reconstruction.evaluation.metrics import check, flatten_metrics
     from reconstruction.pipeline import reconstruct
-    from reconstruction.validation import evaluate, thresholds_for
+    from reconstruction.evaluation.validation import evaluate, thresholds_for
     from twin.capture.session import CaptureSession
 
     cfg = _config(config)

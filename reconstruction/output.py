@@ -5,7 +5,7 @@ reads it here; no other module knows its file names.
     reconstruction.json      format, version, config, network, timings (s) per stage, counts, and the sha256 of
                              every other file ("files"): written last, so a folder is finished when it verifies
     alignment.npz            the alignment map (primary pixel -> secondary pixel) and homography
-    measurements.npz         the extracted measurements (reconstruction.extraction.Measurements)
+    measurements.npz         the extracted measurements (reconstruction.stages.extraction.Measurements)
     latent.exr               72 float32 channels L_0 ... L_71 (reference §4: [a_R, a_G, a_B, s])
     latent_passes.npz        the latents after each fine-tuning pass (pass0 ... pass3)
     maps/                    the fitted OpenSVBRDF maps (twin.materials.samples format: pd/ps/ax_ay/normal/
@@ -20,7 +20,7 @@ content, the rig, the settings, the network) and the sha256 of its files; a stag
 Its files are hard-linked into the finished folder, and the stage folder is removed once OUT is complete.
 Fine-tuning and the fit, the long stages at the real device's scale, also keep their unfinished state there
 (finetune_state.npz, fit_state.npz and refit_state.npz, the stages "finetune_state", "fit_state" and "refit_state": the
-checkpoints of reconstruction.finetune.finetune and reconstruction.fitting._fit_direct, the last that of the pipeline's
+checkpoints of reconstruction.stages.finetune.finetune and reconstruction.stages.fitting._fit_direct, the last that of the pipeline's
 refit of the texels next to a brighter highlight), so that a killed one goes on where it stood.
 """
 from __future__ import annotations
@@ -80,7 +80,7 @@ class ReconstructionFolder:
                   pixel_secondary=meas.pixel_secondary, grid=np.array([g.resolution, g.size_mm], np.float64))
 
     def write_latent(self, latent: np.ndarray, grid_shape, passes: dict) -> None:
-        from .latents import write_latent_exr
+        from reconstruction.stages.latents import write_latent_exr
 
         write_latent_exr(self.dir / LATENT, latent, grid_shape)
         self._npz(LATENT_PASSES, **passes)
@@ -163,14 +163,14 @@ class ReconstructionFolder:
 
     def alignment(self, info: dict):
         """The alignment written by write_alignment, with its `info` (kept in the stage record)."""
-        from .alignment import Alignment
+        from reconstruction.stages.alignment import Alignment
 
         with np.load(self.dir / ALIGNMENT, allow_pickle=False) as z:
             return Alignment(z["map"], z["homography"], info)
 
     def measurements(self):
         """The measurements written by write_measurements."""
-        from .extraction import Measurements, TextureGrid
+        from reconstruction.stages.extraction import Measurements, TextureGrid
 
         with np.load(self.dir / MEASUREMENTS, allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
@@ -222,6 +222,6 @@ class ReconstructionFolder:
 
     def latent(self) -> np.ndarray:
         """(R, C, 72) float32 final latents."""
-        from .latents import read_latent_exr
+        from reconstruction.stages.latents import read_latent_exr
 
         return read_latent_exr(self.dir / LATENT)

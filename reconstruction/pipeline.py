@@ -2,14 +2,14 @@
 
 The same code runs on a folder from the twin or from the real device (it reads only the photos, the
 patterns the LEDs showed and the rig folder the capture carries; the ground truth, when present, is left
-to `reconstruction.validation`).
+to `reconstruction.evaluation.validation`).
 
-    1. alignment       secondary -> primary, uniform-light photos (reconstruction.alignment; paper §8)
-    2. extraction      texture grid + per-texel measurements (reconstruction.extraction; reference §6.1, §6.3)
-    3. decode          encoder -> 56-D latent per texel (reconstruction.latents; paper §7)
-    4. fine-tuning     three passes against the line photos, one held out (reconstruction.finetune; §7.1), and
+    1. alignment       secondary -> primary, uniform-light photos (reconstruction.stages.alignment; paper §8)
+    2. extraction      texture grid + per-texel measurements (reconstruction.stages.extraction; reference §6.1, §6.3)
+    3. decode          encoder -> 56-D latent per texel (reconstruction.stages.latents; paper §7)
+    4. fine-tuning     three passes against the line photos, one held out (reconstruction.stages.finetune; §7.1), and
                        optionally the learned-pattern photos (ReconstructConfig.finetune_photos)
-    5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.fitting; §7.2);
+    5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.stages.fitting; §7.2);
                        then the texels next to a much brighter highlight fitted again from sharper photos
                        (ReconstructConfig.spill_ratio, spill_texels; ours, issue #14)
 
@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .alignment import AlignConfig
-from .finetune import FinetuneConfig
-from .fitting import FitConfig
-from .output import STAGES, ReconstructionFolder, stages_folder
+from reconstruction.stages.alignment import AlignConfig
+from reconstruction.stages.finetune import FinetuneConfig
+from reconstruction.stages.fitting import FitConfig
+from reconstruction.output import STAGES, ReconstructionFolder, stages_folder
 
 FINETUNE_PHOTOS = ("lines", "lines+learned")
 
@@ -46,7 +46,7 @@ class ReconstructConfig:
     # None: the brightest line over the sample (a dim line would score the sensor's noise, not the model)
     holdout_line: int | None = None
     # how a texel's photo value is read: "point" (at its centre), "cell" (the mean over its cell's pixels) or
-    # "gaussian" (the reference's anti-aliasing blur); reconstruction.extraction, step 2
+    # "gaussian" (the reference's anti-aliasing blur); reconstruction.stages.extraction, step 2
     footprint: str = "point"
     # the photos fine-tuning fits (step 4): "lines" (the 64 linear lights less the held-out one, as the paper and
     # the reference) or "lines+learned" (and the primary view's learned-pattern photos, which light many LEDs at
@@ -54,7 +54,7 @@ class ReconstructConfig:
     finetune_photos: str = "lines"
     # the texels that a neighbour's much brighter highlight spills into (ours, issue #14): a texel with an 8-neighbour
     # whose fitted specular peak mean(rho_s) / (alpha_x alpha_y) exceeds this many times its own is fitted again with
-    # its photos, in both views, demosaiced by Malvar-He-Cutler 2004 (reconstruction.extraction, step 0). The bilinear
+    # its photos, in both views, demosaiced by Malvar-He-Cutler 2004 (reconstruction.stages.extraction, step 0). The bilinear
     # demosaic gives ~0.2 of a neighbour's red or blue light to a texel 2.2 px away (docs/accuracy.md), so from about
     # 1 / 0.2 times the texel's own peak the spill is as large as the texel's own highlight. None: never
     spill_ratio: float | None = 4.0
@@ -65,7 +65,7 @@ class ReconstructConfig:
     fit: FitConfig = field(default_factory=FitConfig)
 
     def __post_init__(self):
-        from .extraction import FOOTPRINTS
+        from reconstruction.stages.extraction import FOOTPRINTS
 
         if self.footprint not in FOOTPRINTS:
             raise ValueError(f"ReconstructConfig.footprint must be one of {tuple(FOOTPRINTS)}, got {self.footprint!r}")
@@ -80,7 +80,7 @@ class ReconstructConfig:
 @dataclass
 class Reconstruction:
     directory: Path
-    measurements: object      # reconstruction.extraction.Measurements (its .grid is the texture grid)
+    measurements: object      # reconstruction.stages.extraction.Measurements (its .grid is the texture grid)
     latent: np.ndarray        # (N, 72) final latents
     maps: object              # twin.materials.samples.SVBRDFMaps
     holdout_line: int
@@ -98,14 +98,14 @@ def load_network(name: str, rig, device="cpu"):
     if name == "pretrained":
         from twin.rig.builtin import serves_for
 
-        from .pretrained import load_pretrained, pretrained_info
+        from reconstruction.network.shipped import load_pretrained, pretrained_info
 
         info = pretrained_info(rig.name)
         if info is None or not serves_for(rig, info["rig_digest"]):  # a vignetting calibration keeps the network
             raise ValueError(f"no network ships for rig {rig.name!r}; train one (`hemicube train --rig ...`) and "
                              "pass its run folder (--network RUN)")
         return load_pretrained(rig.name, device)[0]
-    from .train import load_run_model
+    from reconstruction.network.train import load_run_model
 
     return load_run_model(name, device)
 
@@ -167,7 +167,7 @@ SPILL_DEMOSAIC = "malvar2004"  # the refit's demosaic (ReconstructConfig.spill_r
 
 
 def spill_texels(fit, grid_shape, ratio: float) -> np.ndarray:
-    """(R, C) bool: the texels of a fit (reconstruction.fitting.FitResult, row-major on the grid) with an 8-neighbour
+    """(R, C) bool: the texels of a fit (reconstruction.stages.fitting.FitResult, row-major on the grid) with an 8-neighbour
     whose specular peak mean(rho_s) / (alpha_x alpha_y) (GGX's D at the half vector, times rho_s) exceeds `ratio`
     times their own (ReconstructConfig.spill_ratio)."""
     peak = (np.asarray(fit.rho_s, np.float64).mean(axis=1)
@@ -197,11 +197,11 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
                       config: ReconstructConfig, progress: bool) -> Reconstruction:
     from twin.capture.plan import indices_of
 
-    from .alignment import align_views
-    from .extraction import extract, texture_grid
-    from .finetune import decoded_lumitexels, finetune
-    from .fitting import fit_ggx, to_maps
-    from .latents import check_patterns, decode
+    from reconstruction.stages.alignment import align_views
+    from reconstruction.stages.extraction import extract, texture_grid
+    from reconstruction.stages.finetune import decoded_lumitexels, finetune
+    from reconstruction.stages.fitting import fit_ggx, to_maps
+    from reconstruction.stages.latents import check_patterns, decode
 
     timings: dict[str, float] = {}
     resumed: list[str] = []
@@ -345,7 +345,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
 
 class _Checkpoint:
     """A long stage's unfinished state in the stage folder under that stage's key (the checkpoints of
-    reconstruction.finetune.finetune and reconstruction.fitting._fit_direct; the files are reconstruction/output.py's,
+    reconstruction.stages.finetune.finetune and reconstruction.stages.fitting._fit_direct; the files are reconstruction/output.py's,
     the stages output.PARTIAL_STAGES). `loaded`: the phase a killed run had reached, if any; `earlier`: the seconds
     the runs before this one had spent on the stage up to their last save (0 when none), which the stage's timing
     adds, so that a stage resumed across calls reports the time its result took, not this call's share."""

@@ -15,7 +15,7 @@ Each photo is an exposure bracket of BRACKET exposures, BRACKET_RATIO apart, the
 times and the shortest SHORTEST_REPEAT times as often (DEFAULT_FRAMES unless asked otherwise; `bracket_frames`),
 merged to linear HDR (twin.camera.hdr: repeated frames of one exposure are averaged by its inverse-variance weights,
 so N frames cut the temporal noise by sqrt(N)). The learned frames default to the patterns a rig carries as data
-(DEFAULT_PATTERNS: the shipped network's for the built-in rigs, written there by reconstruction.pretrained), else a
+(DEFAULT_PATTERNS: the shipped network's for the built-in rigs, written there by reconstruction.network.shipped), else a
 seeded placeholder; `twin` never asks the network for them.
 """
 from __future__ import annotations

@@ -77,7 +77,7 @@ class Training:
 
     @staticmethod
     def materials(distribution: str, test: bool = False) -> str:
-        """The distribution as reconstruction.data.SamplingConfig.materials: '' (uniform ranges), 'suite:SEEDS'
+        """The distribution as reconstruction.network.data.SamplingConfig.materials: '' (uniform ranges), 'suite:SEEDS'
         (training or held-back test compositions), 'maps:DIR'."""
         if distribution == "uniform":
             return ""

@@ -241,7 +241,7 @@ def grid_coordinates(size_mm: float, shape: tuple[int, int]) -> tuple[np.ndarray
 
 def grid_positions(size_mm: float, shape: tuple[int, int], sample_plane) -> np.ndarray:
     """World positions (mm, float64) of that grid's centres, (H, W, 3): origin + x·x_axis + y·y_axis. The
-    reconstruction's texture grid (reconstruction.extraction) uses the same convention as the maps."""
+    reconstruction's texture grid (reconstruction.stages.extraction) uses the same convention as the maps."""
     o, ax, ay = _plane_axes(sample_plane)
     x, y = grid_coordinates(size_mm, shape)
     return o + x[None, :, None] * ax + y[:, None, None] * ay

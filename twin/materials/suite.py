@@ -25,7 +25,7 @@ The suite is band-limited to what the 48² reconstruction grid (2.2 mm texels on
 represent: relief and colour features are ≥ ~11 mm (≥ 5 grid texels, ≥ 12 map texels at 128²) and
 smooth, sharp edges only bound regions ≥ ~8 mm (printed words, finishes), and texel-scale noise (streaks,
 pores) is kept to ≤ ±10% on ρs and α. Why: a grid texel measures the average over its footprint (std ~1 mm: the ~1.1 mm pixel, the
-bilinear lookup and the extraction's anti-aliasing Gaussian, reconstruction.extraction), while the score
+bilinear lookup and the extraction's anti-aliasing Gaussian, reconstruction.stages.extraction), while the score
 compares with the true maps at the texel centre. Measured on a first draft with 6-8.5 mm leather pebbles:
 the TRUE maps rendered at the texel centres matched the held-out photo with SSIM 0.75 (the fitted maps:
 0.99) and the normal error was 5.7°; 6 mm fabric ribs gave 2.2°. Sub-grid texture is real (OpenSVBRDF

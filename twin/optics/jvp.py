@@ -5,7 +5,7 @@ Gauss-Newton fit of the GGX geometry needs, in one launch, instead of one launch
                                             camera="primary")
 
 For each point p and LED l, `val[0, p, l]` is channel 0 and `val[1, p, l]` channel 1 of Eq. 1 with rho_d =
-(1, 0, 0) and rho_s = (0, 1, 0): the diffuse basis D and the specular basis S of reconstruction.fitting, the very
+(1, 0, 0) and rho_s = (0, 1, 0): the diffuse basis D and the specular basis S of reconstruction.stages.fitting, the very
 numbers twin.lumitexels gives for those albedos, computed by the same `led_response`, so to the bit. `dD[p, j, l]`,
 `dS[p, j, l]` are their derivatives along direction j of point p, which moves the point's local frame (rows
 t', b, n; twin.optics.ggx.local_frame) by d_frame[p, j] (3 x 3) and its log roughness by d_log_alpha[p, j] (2).

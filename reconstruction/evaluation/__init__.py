@@ -1,0 +1,1 @@
+"""Scoring a reconstruction against ground truth: map errors and image scores, thresholds, the report folder."""

@@ -1,0 +1,348 @@
+"""Measurement extraction: from a capture folder's HDR photos to per-texel measurements (reference §6.1, §6.3).
+
+    session = CaptureSession.open(folder)                   # the capture (twin.capture.session)
+    grid = texture_grid(session, rig, resolution=64)        # the texture grid over the sample
+    meas = extract(session, rig, grid, alignment)           # per texel: learned (+,-) differences of both
+                                                            # views, line measurements, transparency
+
+The texture grid (reference §6.1 step 3): a square grid of texels centred on the sample plane's origin, in the
+SVBRDF maps' convention (twin.materials.samples: row i along +y, column j along +x, texel centres at
+-s/2 + (j + 0.5) s/R), so that the reconstruction exports straight to OpenSVBRDF maps. Its side: the sample's
+extent found in the bottom-lit photos (the sample blocks the light that the empty board lets through:
+photo 128 against the empty-board photo 130), as the largest centred square inside that region, shrunk by
+6.5% of the extent on every side as the reference does (so no texel straddles the sample's edge).
+
+Per photo and camera (reference §6.3, with the differences stated):
+  0. the capture's photos are the HDR merge's bilinear demosaic (twin.camera.hdr); `demosaic="malvar2004"` reads
+     each photosite's own colour back from them (a bilinear demosaic keeps it) and demosaics that mosaic by
+     Malvar-He-Cutler 2004 instead (ours, issue #14): its red and blue reach less across an edge, so a texel next
+     to a much brighter highlight takes less of it (the bilinear tent gives ~0.2 of a red or blue value to each
+     side at the mini rig's 2.2 px a texel), for more noise and false colour where the colours do not move
+     together; the pipeline reads it only for such texels (reconstruction.pipeline, ReconstructConfig.spill_ratio);
+  1. flat field and colour matrix (twin.camera.correction, from the rig's calibration): camera RGB -> the
+     LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
+  2. the texel's footprint in the photo (`footprint`, ours; one function per method, FOOTPRINTS):
+     "point" (default): no filter, the value at the texel centre (step 3): the GGX fit models the BRDF AT the
+     texel centre, and both views then read the same kind of value.
+     "cell": the mean over the largest odd square of pixels that, with step 3's bilinear lookup (1 px more),
+     stays inside the texel's cell: width k, the largest odd number with k + 1 <= d, d the smallest pixel step
+     between adjacent texels of that view (1, no filter, under 4 px: the mini rig's 2.3 px at 48^2; the paper
+     rig from 512^2 on, and its secondary view, foreshortened to 2.6 px, at 256^2). A texel spanning many
+     photosites is then measured by more of them than the ~4 a bilinear lookup reads (the paper rig at 256^2:
+     4.8 px a texel in the primary view, a 3 px box, half the noise). Why not the default (docs/accuracy.md,
+     2026-11-26): on the paper rig at 256^2 with maps as fine as the grid it made normals, alpha and rho_s
+     20-30% better on satin and wood, but on the mini rig at 24^2 (64^2 maps: texture finer than a texel) it
+     made wood's normals and rho_d and paper's alpha (30 -> 52%) worse, scored against the maps at the texel
+     centre; and where one view is read over a box and the other at its centre the two disagree.
+     "gaussian": the reference's anti-aliasing Gaussian, odd width k = 2 ceil(d/2 + 1) - 1 with d the largest
+     pixel step between adjacent texels (only when d > 1.5 px). Why not the default: the GGX fit models the
+     BRDF AT the texel centre, and the Gaussian (sigma ~1.1 px for texels 2 px apart) mixes the neighbours'
+     light in: a weak lobe next to a glossy one took +1% of the bright lines from its neighbour's highlight
+     (issue #14's paper, wallpaper). Measured on the material suite (mini rig, 48², same captures,
+     docs/accuracy.md): without it the median normal error halved where there is relief (wood 0.18 -> 0.08°,
+     leather 0.20 -> 0.11°, wallpaper 0.31 -> 0.15°), alpha was better on 8 of 10 samples (wallpaper 7.5/9.4%
+     -> 4.6/6.7%); a point sample is noisier, so rho_s got worse on the weak lobes (fabric 10.2 -> 12.9%,
+     paper 13.3 -> 16.4%), which the fit's prior then pools;
+  3. the value at the texel centre's projection, BILINEAR (the reference truncates to the pixel, a
+     half-pixel bias), through the camera's own distortion (no separate undistortion pass: the projection
+     already lands on the raw pixel);
+  4. the secondary view through the two-view alignment (reconstruction.stages.alignment): a texel's secondary
+     pixel is the alignment map at its primary pixel (the reference's homography + PatchMatch warp);
+  5. units: LED-RGB radiance times reconstruction.network.data.LUMITEXEL_SCALE = "network units", those of the
+     lumitexels the network was trained on; the learned measurements are the grey (mean RGB) differences
+     photo(+) - photo(-) of each pair, which equal sum_l q_kl m_l for the network's signed 8-bit
+     patterns q (reconstruction.network.architecture.PatternLayer) exactly when the photos are noise-free.
+Transparency (reference §6.3): clip(mean_rgb(bottom / empty), 0, 1) at the texel.
+"""
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin.capture.plan import PlanIndices, indices_of
+from twin.capture.session import CaptureSession
+
+# reference §6.1: the texture grid is the sample's bounding box shrunk by 6.5% of its extent on every side
+GRID_SHRINK = 0.065
+# a pixel is "under the sample" when the sample lets through less than this fraction of the empty board's
+# bottom light (the built-in samples are opaque, beta = 0; a sample more translucent than this needs an
+# explicit size)
+SAMPLE_RATIO = 0.5
+# pixels whose empty-board bottom light is below this fraction of the brightest are the holder frame or
+# outside the board: not evidence either way
+LIT_FRACTION = 0.05
+MIN_SAMPLE_PIXELS = 64
+READERS = 8  # threads that read photos at once (at most the CPUs): 8 x ~0.3 GB of photo in flight
+
+
+
+class ExtractionError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class TextureGrid:
+    """A square grid of resolution x resolution texels, side size_mm, centred on the sample plane's origin."""
+
+    resolution: int
+    size_mm: float
+
+    def __post_init__(self):
+        if not isinstance(self.resolution, (int, np.integer)) or self.resolution < 2:
+            raise ExtractionError(f"grid resolution must be an integer >= 2, got {self.resolution!r}")
+        if not (math.isfinite(self.size_mm) and self.size_mm > 0):
+            raise ExtractionError(f"grid size must be a positive number of mm, got {self.size_mm!r}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.resolution), int(self.resolution))
+
+    @property
+    def texel_mm(self) -> float:
+        return self.size_mm / self.resolution
+
+    def positions(self, rig) -> np.ndarray:
+        """(R*R, 3) float64 world positions (mm) of the texel centres, row-major (i * R + j)."""
+        from twin.materials.samples import grid_positions
+
+        return grid_positions(self.size_mm, self.shape, rig.sample).reshape(-1, 3)
+
+
+@dataclass
+class Measurements:
+    """Per texel (N = R*R, row-major) of a TextureGrid, in network units (module docstring)."""
+
+    grid: TextureGrid
+    lines: np.ndarray          # (N, 64, 3) RGB line-light measurements, primary view
+    line_weights: np.ndarray   # (64, L_upper, 3) the line patterns' relative drive (levels / 255)
+    transparency: np.ndarray   # (N,) in [0, 1]
+    valid: np.ndarray          # (N,) bool: seen by both views, every value finite
+    pixel_primary: np.ndarray  # (N, 2) the texel centre's primary pixel (x, y)
+    pixel_secondary: np.ndarray  # (N, 2) its aligned secondary pixel (x, y), NaN where unknown
+    # the 2K learned-pattern photos (+ and - frames, photos 0 to 2K-1; 64 in the reference's plan) of both views
+    # (the secondary through the alignment), RGB, and their patterns' relative drive on the upper LEDs:
+    # non-negative measurements like the lines, which the GGX fit uses too
+    learned_photos: np.ndarray   # (N, 2, 2K, 3) views [primary, secondary]
+    learned_weights: np.ndarray  # (2K, L_upper, 3)
+
+    @property
+    def learned(self) -> np.ndarray:
+        """(N, 2, K) the network's input: the grey (mean RGB) (+, -) differences of the learned photos, views
+        [primary, secondary]."""
+        return (self.learned_photos[:, :, 0::2] - self.learned_photos[:, :, 1::2]).mean(axis=3)
+
+
+def plan_indices(session: CaptureSession) -> PlanIndices:
+    """The capture's plan layout (twin.capture.plan.indices_of), its faults as ExtractionError."""
+    try:
+        return indices_of(session)
+    except ValueError as e:
+        raise ExtractionError(str(e)) from None
+
+
+def capture_patterns(session: CaptureSession, rig, names) -> np.ndarray:
+    """(len(names), L, 3) float32 relative drive of the named frames in the capture's own patterns (what the
+    LEDs really showed), checked against the rig."""
+    from twin.capture.patterns import PatternError
+
+    try:
+        pats = session.patterns()
+        pats.check_rig(rig)
+    except PatternError as e:
+        raise ExtractionError(f"{session.dir}: {e}") from None
+    index = {n: k for k, n in enumerate(pats.names)}
+    missing = [n for n in names if n not in index]
+    if missing:
+        raise ExtractionError(f"{session.dir}: its patterns lack frames {missing[:3]}{'...' if len(missing) > 3 else ''}")
+    return pats.weights[[index[n] for n in names]].astype(np.float32)
+
+
+def calibration_of(camera, falloff=None) -> tuple[np.ndarray, np.ndarray]:
+    """(flat field (H, W, 1), colour matrix (3, 3)) of a camera, with the rig's per-pixel `falloff` map for it
+    if any (`Rig.flat_fields`): computed once per camera, used per photo."""
+    from twin.camera.correction import colour_matrix, flat_field
+
+    return flat_field(camera, falloff)[..., None], colour_matrix(camera)
+
+
+def corrected(img: np.ndarray, camera, calibration=None) -> np.ndarray:
+    """Step 1: flat field and colour matrix (`calibration_of(camera)` unless given), camera RGB -> LED-RGB
+    radiance, clamped at >= 0 (reference §6.3 step 6: read noise makes dark pixels slightly negative; no
+    light is)."""
+    from twin.camera.correction import apply_colour_matrix
+
+    if img.shape != (camera.height, camera.width, 3):
+        raise ExtractionError(f"photo of camera {camera.name!r} is {img.shape}, the rig says "
+                              f"({camera.height}, {camera.width}, 3)")
+    flat, C = calibration if calibration is not None else calibration_of(camera)
+    return np.maximum(apply_colour_matrix(img * flat, C), 0.0)
+
+
+def detect_sample_size(session: CaptureSession, rig) -> float:
+    """Side (mm) of the largest square centred on the plane origin inside the region where the sample blocks
+    the bottom light (photo 128 against 130, primary camera), before the reference's 6.5% shrink."""
+    cam = rig.camera(next(iter(rig.cameras)))
+    ix = plan_indices(session)
+    lit = session.photo(ix.empty_bottom, 0).mean(axis=2)
+    sample = session.photo(ix.bottom, 0).mean(axis=2)
+    ok = lit > LIT_FRACTION * lit.max()
+    under = ok & (sample < SAMPLE_RATIO * lit)
+    if under.sum() < MIN_SAMPLE_PIXELS:
+        raise ExtractionError(f"{session.dir}: no opaque sample found in the bottom-lit photos ({int(under.sum())} "
+                              "pixels block the light); give the sample size explicitly (--size-mm)")
+    ys, xs = np.nonzero(under)
+    p = cam.plane_points(np.stack([xs, ys], axis=1).astype(np.float64), rig.sample.origin, rig.sample.normal)
+    p -= np.asarray(rig.sample.origin)
+    u, v = p @ np.asarray(rig.sample.x_axis), p @ np.asarray(rig.sample.y_axis)
+    lo_u, hi_u = np.percentile(u, [0.5, 99.5])  # robust to single noisy pixels
+    lo_v, hi_v = np.percentile(v, [0.5, 99.5])
+    half = min(-lo_u, hi_u, -lo_v, hi_v)
+    if half <= 0:
+        raise ExtractionError(f"{session.dir}: the sample region does not contain the plane origin; give the sample "
+                              "size explicitly (--size-mm)")
+    return 2.0 * half
+
+
+def texture_grid(session: CaptureSession, rig, resolution: int, size_mm: float | None = None) -> TextureGrid:
+    """The reconstruction's texture grid: `size_mm` when given, else the detected sample square shrunk by
+    GRID_SHRINK of its extent on every side (reference §6.1)."""
+    if size_mm is None:
+        size_mm = detect_sample_size(session, rig) * (1.0 - 2.0 * GRID_SHRINK)
+    return TextureGrid(int(resolution), float(size_mm))
+
+
+def _pixel_steps(uv: np.ndarray, shape) -> np.ndarray:
+    """The finite pixel distances between adjacent texels (both grid axes) of one view."""
+    g = uv.reshape(*shape, 2)
+    steps = np.concatenate([np.linalg.norm(np.diff(g, axis=a), axis=-1).ravel() for a in (0, 1)])
+    return steps[np.isfinite(steps)]
+
+
+def _cell_width(steps: np.ndarray) -> int:
+    """Step 2, "cell": the largest odd k with k + 1 <= d (d the smallest step); 0 (no filter) where k is 1."""
+    k = 2 * math.floor(float(steps.min()) / 2 - 1) + 1 if steps.size else 0
+    return k if k >= 3 else 0
+
+
+def _gaussian_width(steps: np.ndarray) -> int:
+    """Step 2, "gaussian" (reference §6.1 step 4): odd width 2 ceil(d/2 + 1) - 1 from the largest step d; 0 (no
+    blur) when texels are under 1.5 px."""
+    d = float(steps.max()) if steps.size else 0.0
+    return 0 if d <= 1.5 else 2 * math.ceil(d / 2 + 1) - 1
+
+
+def _box(img: np.ndarray, k: int) -> np.ndarray:
+    import cv2
+
+    return cv2.blur(img, (k, k), borderType=cv2.BORDER_REFLECT)
+
+
+def _gaussian(img: np.ndarray, k: int) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(img, (k, k), 0, borderType=cv2.BORDER_REFLECT)
+
+
+# step 2's methods: (the filter's width from a view's texel steps, the filter) (colour-science style dispatch)
+FOOTPRINTS = {"point": (lambda steps: 0, None), "cell": (_cell_width, _box), "gaussian": (_gaussian_width, _gaussian)}
+
+
+def _taps(shape, uv: np.ndarray) -> tuple:
+    """The bilinear taps (reconstruction.stages.alignment.bilinear_taps) of the points uv (N, 2) in an image of `shape`:
+    computed once per view, as every photo of a view is sampled at the same points (ours, issue #12: a photo
+    sampled at 1024^2 texels, 0.239 s with its own taps, 0.209 s with its view's; docs/performance.md)."""
+    from reconstruction.stages.alignment import bilinear_taps
+
+    return bilinear_taps(shape, uv[:, 0], uv[:, 1])
+
+
+def _sample(img: np.ndarray, taps: tuple, footprint: str = "point", ksize: int = 0) -> np.ndarray:
+    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at the points of `taps` (_taps), NaN outside the
+    image, after the footprint's filter of width ksize (none when 0) (exact weights: cv2.remap would quantise the
+    sub-pixel position to 1/32 px)."""
+    from reconstruction.stages.alignment import bilinear_at
+
+    if ksize:
+        img = FOOTPRINTS[footprint][1](img, ksize)
+    return bilinear_at(img, taps).astype(np.float32)
+
+
+def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
+    """Step 4: each texel's secondary pixel, the alignment map (H0, W0, 2) sampled bilinearly at its primary
+    pixel (NaN where the map is unknown)."""
+    return _sample(alignment.map, _taps(alignment.map.shape, uv_primary))
+
+
+def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "point",
+            demosaic: str = "bilinear", progress: bool = False) -> Measurements:
+    """Per-texel measurements of a capture (module docstring; step 2's method: `footprint`, one of FOOTPRINTS;
+    step 0's `demosaic`, one of twin.camera.bayer.DEMOSAICS)."""
+    from twin.camera.bayer import DEMOSAICS, mosaic
+    from twin.camera.bayer import demosaic as demosaiced
+
+    from reconstruction.network.data import LUMITEXEL_SCALE
+
+    if footprint not in FOOTPRINTS:
+        raise ExtractionError(f"footprint must be one of {tuple(FOOTPRINTS)}, got {footprint!r}")
+    if demosaic not in DEMOSAICS:
+        raise ExtractionError(f"demosaic must be one of {tuple(DEMOSAICS)}, got {demosaic!r}")
+    if session.rig_digest != rig.digest():
+        raise ExtractionError(f"{session.dir} was captured with another rig (digest {session.rig_digest}) than "
+                              f"{rig.name!r} ({rig.digest()})")
+    cams = [rig.camera(c) for c in rig.cameras]
+    if len(cams) != 2:
+        raise ExtractionError(f"the pipeline needs a two-camera rig, {rig.name!r} has {len(cams)}")
+    pos = grid.positions(rig)
+    uv0, _ = cams[0].project(pos)
+    uv1 = secondary_pixels(uv0, alignment)
+    k0, k1 = (FOOTPRINTS[footprint][0](_pixel_steps(uv, grid.shape)) for uv in (uv0, uv1))
+    scale = np.float32(LUMITEXEL_SCALE)
+
+    calibrations = [calibration_of(c, rig.flat_fields.get(c.name)) for c in cams]
+
+    def photo(k, c):
+        img = session.photo(k, c)
+        if demosaic != "bilinear":  # step 0: the HDR merge's bilinear demosaic keeps each photosite's own colour
+            bayer = cams[c].sensor.bayer
+            img = demosaiced(mosaic(img, bayer), bayer, method=demosaic).astype(np.float32)
+        return corrected(img, cams[c], calibrations[c])
+
+    from tqdm import tqdm
+
+    upper = np.flatnonzero(~np.asarray(rig.is_bottom))
+    ix = plan_indices(session)
+    weights = capture_patterns(session, rig, [f"line_{j:02d}" for j in range(len(ix.lines))])[:, upper, :]
+    shown = session.shown_patterns(0)
+    learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]
+
+    views = [(_taps((cam.height, cam.width), uv), k) for cam, uv, k in zip(cams, (uv0, uv1), (k0, k1))]
+
+    def sampled(job):
+        k, c = job
+        return _sample(photo(k, c), views[c][0], footprint, views[c][1])
+
+    # the photos are read, checked, corrected and sampled by a pool of threads (EXR decoding, sha256 and numpy
+    # release the GIL): a paper-rig capture is 196 photos of 74 MB, ~0.5 s each on one core
+    jobs = [(k, c) for c in (0, 1) for k in ix.learned] + [(k, 0) for k in ix.lines] + [(ix.bottom, 0), (ix.empty_bottom, 0)]
+    with ThreadPoolExecutor(max_workers=min(READERS, os.cpu_count() or 1)) as pool:
+        values = dict(zip(jobs, tqdm(pool.map(sampled, jobs), total=len(jobs), desc="extract",
+                                     disable=not progress)))
+    n = len(pos)
+    learned_photos = np.empty((n, 2, len(ix.learned), 3), np.float32)
+    for c in (0, 1):
+        for k in ix.learned:
+            learned_photos[:, c, k] = values[k, c] * scale
+    lines = np.empty((n, len(ix.lines), 3), np.float32)
+    for j, k in enumerate(ix.lines):
+        lines[:, j] = values[k, 0] * scale
+    bottom = values[ix.bottom, 0].mean(axis=1)
+    empty = values[ix.empty_bottom, 0].mean(axis=1)
+    transparency = np.clip(bottom / (empty + 1e-6), 0.0, 1.0).astype(np.float32)  # reference §6.3
+    valid = (np.isfinite(learned_photos).all(axis=(1, 2, 3)) & np.isfinite(lines).all(axis=(1, 2))
+             & np.isfinite(transparency))
+    return Measurements(grid, lines, weights, transparency, valid, uv0.astype(np.float32), uv1.astype(np.float32),
+                        learned_photos, learned_weights)

@@ -1,0 +1,53 @@
+"""The material suite (issue #14): `hemicube validate --suite` on the suite and its held-back samples, run once,
+two at a time, each held to the mini rig's goals. A file of its own: the test processes (pytest-xdist) take a
+file each, and the suite is the longest, so the main job's tests run beside it rather than after it.
+"""
+from __future__ import annotations
+
+import pytest
+
+from reconstruction.evaluation.validation import thresholds_for
+from twin.materials.samples import SUITE
+
+# --- the material suite (issue #14) ---------------------------------------------------------------------
+# The held-back samples (issue #14 item 3): other seeds, i.e. other compositions of every other suite category,
+# chosen before any of them was run; the tuning never looked at them.
+HELD_BACK = tuple(f"{name}@{9001 + k}" for k, name in enumerate(SUITE) if k % 2 == 0)
+# Samples that miss the goals today, and why (docs/accuracy.md, "Open"), by their full name: (reason, strict).
+# Strict: one that starts passing fails here until it is taken off this list.
+KNOWN_OPEN: dict = {}  # none since the joint prior's loop runs to its minimum (docs/accuracy.md, step 15)
+
+
+@pytest.fixture(scope="module")
+def suite_run(tmp_path_factory):
+    """`hemicube validate --suite` on the suite and the held-back samples: one run, two workers (CI's cores)."""
+    from hemicube.validate import suite_results
+
+    return suite_results(list(SUITE) + list(HELD_BACK), output=tmp_path_factory.mktemp("suite"), jobs=2)
+
+
+def _open(name: str):
+    known = KNOWN_OPEN.get(name)
+    return pytest.param(name, marks=pytest.mark.xfail(strict=known[1], reason=known[0])) if known else name
+
+
+@pytest.mark.parametrize("name", [_open(n) for n in SUITE + HELD_BACK])
+def test_suite_sample_meets_the_goals(suite_run, name):
+    """Every suite and held-back sample at the mini rig's goals (reconstruction.evaluation.validation.GOALS), never at
+    thresholds measured on itself."""
+    r = next(r for r in suite_run["samples"] if r["sample"] == name)
+    assert "error" not in r, r.get("error")
+    assert [row["metric"] for row in r["rows"]] == [g.metric for g in thresholds_for("mini", None, name)]
+    missed = {row["metric"]: row["value"] for row in r["rows"] if not row["passed"]}
+    assert r["passed"] and not missed, missed
+
+
+def test_suite_report_and_table(suite_run):
+    from hemicube.validate import suite_table
+
+    assert all(c.passed for c in suite_run["checks"])
+    table = suite_table(suite_run["samples"])
+    assert all(name in table for name in SUITE + HELD_BACK)
+    report = suite_run["report"]  # OUTPUT/report/report.md
+    assert report.name == "report.md" and all(name in report.read_text() for name in SUITE + HELD_BACK)
+    assert len(list(report.parent.rglob("*.png"))) >= len(SUITE + HELD_BACK)
