@@ -1,6 +1,7 @@
 # Set-up and the two entry points shown in README.md.
 #   make validate   -> the main job: `hemicube validate` on the embedded default rig and sample
 #   make test       -> the test suite (what CI runs through .ci/run)
+#   make test-fast  -> the same less the end-to-end files and the tests marked slow (below)
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -13,7 +14,7 @@ TORCH_SPEC ?= torch==2.13.0
 # --no-loadscope-reorder (xdist >= 3.8): the files in tests/conftest.py's order, the longest first; xdist's default
 # order, by test count, queued the long files with few tests last.
 PYTEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder
-# --durations: the 25 slowest tests end every log, CI's included (what its 20 minutes go to: docs/performance.md)
+# --durations: the 25 slowest tests end every log, CI's included (what its time goes to: docs/performance.md)
 
 export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
@@ -21,7 +22,7 @@ export MPLBACKEND ?= Agg
 export DRJIT_CACHE_DIR ?= $(CURDIR)/.cache/drjit
 export GENICAM_CACHE_V3_5 ?= $(CURDIR)/.cache/genicam
 
-.PHONY: setup validate test
+.PHONY: setup validate test test-fast
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml
@@ -36,3 +37,12 @@ validate: setup
 
 test: setup
 	$(BIN)/python -m pytest -q --durations=25 $(PYTEST_WORKERS) $(PYTEST_ARGS)
+
+# The fast tier: every test but those of the end-to-end files, which tests/conftest.py names (END_TO_END_FILES) and
+# marks e2e: test_validate_suite, test_scaleout, test_hardware_capture, test_bench_pipeline, test_capture,
+# test_alignment, test_validate, test_train, test_design, test_reconstruct_resume, test_calibration,
+# test_calibration_colour, test_calibration_leds, test_distributed, test_notebooks; and but the tests marked slow
+# in the other files (those of the main job's capture, the benches' whole runs, gradient checks).
+FAST_MARKERS ?= not e2e and not slow
+test-fast: setup
+	$(BIN)/python -m pytest -q --durations=10 $(PYTEST_WORKERS) -m "$(FAST_MARKERS)" $(PYTEST_ARGS)

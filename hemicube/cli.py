@@ -1,6 +1,6 @@
 """`hemicube`: the one command-line front for the twin, calibration and reconstruction. Each package
-registers its own sub-commands (twin.cli, reconstruction.cli); the main job, `validate`, spans them and
-lives here."""
+registers its own sub-commands (twin.cli, calibration.cli, reconstruction.cli); the main job, `validate`,
+spans them and lives here."""
 from __future__ import annotations
 
 import argparse

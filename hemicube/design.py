@@ -1,4 +1,4 @@
-"""`hemicube design evaluate DESIGN...`: score capture designs side by side (issue #17 item 2).
+"""`hemicube design evaluate DESIGN...`: score capture designs side by side (docs/designer.md).
 
 Each design (twin.design.design_file) is scored on figures a designer trusts; every figure says how it was
 computed (the `how` table written beside the results):

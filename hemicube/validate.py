@@ -52,7 +52,7 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int 
 
     resolution = resolution or ReconstructConfig.resolution
     # the sample's maps at least as fine as the texture grid, so that a fine grid never scores upsampled maps
-    # (issue #13: capture at 1024^2, reconstruct at 1024^2)
+    # (the paper's latents and maps are both 1024^2: reference §8)
     cap = capture(rig_obj, sample, output / "capture", seed=seed, device=device, progress=progress, learned=learned,
                   resolution=max(SAMPLE_RESOLUTION, resolution), frames=frames)
     config = replace(ReconstructConfig(), resolution=resolution, device=device, network=str(network))

@@ -1,5 +1,6 @@
 """The reconstruction's sub-commands of `hemicube` (registered by the front, hemicube.cli): reconstruct,
-train, and bench reconstruct."""
+reconstruct-many, train, network, and the reconstruction's benchmarks (bench reconstruct and the others
+register_bench adds). Options and printing only: the work is in the modules each command calls."""
 from __future__ import annotations
 
 import json
@@ -100,7 +101,8 @@ def cmd_reconstruct_many(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from reconstruction.bench import bench_fit_forward, bench_fit_jacobian, bench_reconstruct
+    from reconstruction.bench.fit import bench_fit_forward, bench_fit_jacobian
+    from reconstruction.bench.reconstruct import bench_reconstruct
 
     from twin.bench import bench_exit
 
@@ -112,6 +114,41 @@ def cmd_bench(args) -> int:
         res = bench_reconstruct(args.rig, args.device, args.texels, args.network)
     print(json.dumps(res, indent=2))
     return bench_exit(res)
+
+
+def cmd_bench_pipeline(args) -> int:
+    """The benches of the pipeline's limits and of whole runs (reconstruction.bench.latent, limits, e2e, scaling):
+    the arguments given, over --tiny's sizes, over the function's defaults."""
+    import importlib
+
+    from twin.bench import bench_exit
+
+    module, function, names = BENCH_PIPELINE[args.bench_command]
+    mod = importlib.import_module(f"reconstruction.bench.{module}")
+    kwargs = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
+    if "rig" in kwargs:
+        kwargs["rig_name"] = kwargs.pop("rig")
+    for key in ("samples", "processes", "finetune_iterations"):
+        if key in kwargs:
+            kwargs[key] = tuple(kwargs[key])
+    res = getattr(mod, function)(**({**mod.TINY, **kwargs} if args.tiny else kwargs))
+    print(json.dumps(res, indent=2))
+    return bench_exit(res)
+
+
+# sub-command -> (module of reconstruction.bench, its function, the arguments it takes from the command line)
+BENCH_PIPELINE = {
+    "latent-ceiling": ("latent", "bench_latent_ceiling", ("rig", "device", "samples", "resolution", "size_mm",
+                                                          "steps", "lr", "network", "finetune_iterations")),
+    "fit-limits": ("limits", "bench_fit_limits", ("rig", "device", "samples", "resolution", "size_mm", "noise",
+                                                  "seed", "frames", "capture", "finetune_iterations",
+                                                  "fit_iterations")),
+    "e2e": ("e2e", "bench_e2e", ("rig", "device", "sample", "resolution", "seed", "frames", "network", "workdir",
+                                 "twice")),
+    "train-scaling": ("scaling", "bench_train_scaling", ("rig", "device", "processes", "steps", "batch",
+                                                         "eval_every", "dropout", "measurement_noise", "loss_rtol",
+                                                         "workdir")),
+}
 
 
 def register(sub) -> None:
@@ -229,3 +266,74 @@ def register_bench(bench) -> None:
         s.add_argument("--repeats", type=int, default=repeats, help="timed runs, the fastest reported (default: "
                        "%(default)s)")
         s.set_defaults(func=cmd_bench)
+    _register_bench_pipeline(bench)
+
+
+def _register_bench_pipeline(bench) -> None:
+    """`bench latent-ceiling`, `bench fit-limits`, `bench e2e`, `bench train-scaling` (cmd_bench_pipeline). No
+    option has a parser default: what is not given is the bench function's default, or --tiny's size."""
+    rig = "built-in rig (paper, mini) or rig folder (default: paper)"
+    device = "torch/Warp device: cpu, cuda (default: cpu)"
+    tiny = "small sizes on the mini rig that run on a CPU in seconds (the options given win)"
+    for name, text in (("latent-ceiling", "SSIM and Eq. 3 of the best latent (optimised against the exact "
+                        "lumitexel) against the network's and fine-tuning's, on exact texels of samples"),
+                       ("fit-limits", "the GGX fit's map errors from exact lumitexels, decoded ones, noisy photos "
+                        "(and a capture through the pipeline), on exact texels of samples")):
+        s = bench.add_parser(name, help=text)
+        s.add_argument("--rig", help=rig)
+        s.add_argument("--device", help=device)
+        s.add_argument("--sample", dest="samples", action="append", help="built-in sample or folder of maps, "
+                       "repeatable (default: ramps)")
+        s.add_argument("--resolution", type=int, help="texture grid texels per side (default: 64)")
+        s.add_argument("--size-mm", type=float, help="side of the texture grid on the sample (default: 100)")
+        s.add_argument("--finetune-iterations", type=int, nargs=3, metavar=("P1", "P2", "P3"),
+                       help="fine-tuning's iteration caps per pass (default: `hemicube reconstruct`'s)")
+        if name == "latent-ceiling":
+            s.add_argument("--steps", type=int, help="Adam steps of the best-latent search (default: 2000)")
+            s.add_argument("--lr", type=float, help="its learning rate (default: 0.02)")
+            s.add_argument("--network", help="'pretrained' or a `hemicube train` run folder (default: pretrained)")
+        else:
+            s.add_argument("--noise", type=float, help="relative sigma of the photos' noise (default: 0.005, about "
+                           "a four-frame photo's)")
+            s.add_argument("--seed", type=int, help="seed of the noise (default: 7)")
+            s.add_argument("--frames", type=int, help="frames an exposure the fit weighs the photos for (default: "
+                           "the capture plan's)")
+            s.add_argument("--fit-iterations", type=int, help="the fit's iterations (default: its own)")
+            s.add_argument("--capture", help="a capture folder of this rig and the (one) sample: also run it "
+                           "through the pipeline on the same grid and score it")
+        s.add_argument("--tiny", action="store_true", help=tiny)
+        s.set_defaults(func=cmd_bench_pipeline)
+
+    s = bench.add_parser("e2e", help="`hemicube capture` then `hemicube reconstruct`, each its own process: "
+                         "seconds, memory, bytes; both folders verified")
+    s.add_argument("--rig", help=rig)
+    s.add_argument("--device", help=device)
+    s.add_argument("--sample", help="built-in sample or folder of maps (default: ramps)")
+    s.add_argument("--resolution", type=int, help="the sample's maps and the texture grid, texels per side "
+                   "(default: each command's own)")
+    s.add_argument("--seed", type=int, help="the capture's seed (default: 0)")
+    s.add_argument("--frames", type=int, help="frames an exposure (default: the capture's)")
+    s.add_argument("--network", help="for the reconstruction: a `hemicube train` run folder (default: the shipped)")
+    s.add_argument("--workdir", help="keep the capture and reconstruction folders here (default: a temporary "
+                   "folder, removed)")
+    s.add_argument("--twice", action="store_true", help="capture a second time with the same seed and check the "
+                   "files are byte-identical (small sizes)")
+    s.add_argument("--tiny", action="store_true", help=tiny)
+    s.set_defaults(func=cmd_bench_pipeline)
+
+    s = bench.add_parser("train-scaling", help="`hemicube train` under torchrun on 1, 2, ... processes: "
+                         "lumitexels/s, speed-up, held-out loss against the 1-process run")
+    s.add_argument("--rig", help=rig)
+    s.add_argument("--device", help="cpu (gloo) or cuda (NCCL, one GPU a process) (default: cpu)")
+    s.add_argument("--processes", type=int, nargs="+", help="process counts; 1 always runs (default: 1 2)")
+    s.add_argument("--steps", type=int, help="training steps of each run (default: 200)")
+    s.add_argument("--batch", type=int, help="the global batch (default: 1024)")
+    s.add_argument("--eval-every", type=int, help="steps between held-out evaluations (default: 50)")
+    s.add_argument("--dropout", type=float, help="dropout (default: `hemicube train`'s)")
+    s.add_argument("--measurement-noise", type=float, help="training's measurement noise (default: `hemicube "
+                   "train`'s)")
+    s.add_argument("--loss-rtol", type=float, help="the held-out loss's tolerance against the 1-process run "
+                   "(default: 0.05)")
+    s.add_argument("--workdir", help="keep the runs here (default: a temporary folder, removed)")
+    s.add_argument("--tiny", action="store_true", help=tiny)
+    s.set_defaults(func=cmd_bench_pipeline)

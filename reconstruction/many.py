@@ -1,4 +1,4 @@
-"""`hemicube reconstruct-many CAPTURES_DIR -o OUT` (issue #18): every capture folder under CAPTURES_DIR
+"""`hemicube reconstruct-many CAPTURES_DIR -o OUT` (docs/scale-out.md): every capture folder under CAPTURES_DIR
 reconstructed into OUT/<name>/, one Ray task each (twin.batch: local by default, a cluster with --address;
 GPU tasks on CUDA), skipping what is finished, retrying failures a bounded number of times.
 

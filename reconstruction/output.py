@@ -20,8 +20,8 @@ content, the rig, the settings, the network) and the sha256 of its files; a stag
 Its files are hard-linked into the finished folder, and the stage folder is removed once OUT is complete.
 Fine-tuning and the fit, the long stages at the real device's scale, also keep their unfinished state there
 (finetune_state.npz, fit_state.npz and refit_state.npz, the stages "finetune_state", "fit_state" and "refit_state": the
-checkpoints of reconstruction.stages.finetune.finetune and reconstruction.stages.fitting._fit_direct, the last that of the pipeline's
-refit of the texels next to a brighter highlight), so that a killed one goes on where it stood.
+checkpoints of reconstruction.stages.finetune.finetune and reconstruction.stages.fitting.direct._fit_direct, the last
+that of the pipeline's refit of the texels next to a brighter highlight), so that a killed one goes on where it stood.
 """
 from __future__ import annotations
 

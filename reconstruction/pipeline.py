@@ -11,7 +11,7 @@ to `reconstruction.evaluation.validation`).
                        optionally the learned-pattern photos (ReconstructConfig.finetune_photos)
     5. fitting         GGX + local frame per texel against the decoded lumitexels (reconstruction.stages.fitting; §7.2);
                        then the texels next to a much brighter highlight fitted again from sharper photos
-                       (ReconstructConfig.spill_ratio, spill_texels; ours, issue #14)
+                       (ReconstructConfig.spill_ratio, spill_texels; ours, docs/accuracy.md)
 
 The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone). Stages 1, 2
 and 4 are kept as they finish, so a killed or failed run, started again with the same capture and settings,
@@ -50,9 +50,9 @@ class ReconstructConfig:
     footprint: str = "point"
     # the photos fine-tuning fits (step 4): "lines" (the 64 linear lights less the held-out one, as the paper and
     # the reference) or "lines+learned" (and the primary view's learned-pattern photos, which light many LEDs at
-    # once: they constrain directions of the latent that no line sees; docs/accuracy.md, issue #13)
+    # once: they constrain directions of the latent that no line sees; docs/accuracy.md)
     finetune_photos: str = "lines"
-    # the texels that a neighbour's much brighter highlight spills into (ours, issue #14): a texel with an 8-neighbour
+    # the texels that a neighbour's much brighter highlight spills into (ours): a texel with an 8-neighbour
     # whose fitted specular peak mean(rho_s) / (alpha_x alpha_y) exceeds this many times its own is fitted again with
     # its photos, in both views, demosaiced by Malvar-He-Cutler 2004 (reconstruction.stages.extraction, step 0). The bilinear
     # demosaic gives ~0.2 of a neighbour's red or blue light to a texel 2.2 px away (docs/accuracy.md), so from about
@@ -285,17 +285,18 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     stages.link_stage("finetune", out)
 
     t = stage("fitting")
-    # decoded chunk by chunk as the fit goes, in the fine-tuning's precision (issue #12)
+    # decoded chunk by chunk as the fit goes (a paper-rig grid's lumitexels do not fit in memory at once), in the
+    # fine-tuning's precision
     lumi = decoded_lumitexels(model, latent, precision=ft_cfg.precision)
     keep = [k for k in range(meas.lines.shape[1]) if k not in ft_cfg.holdout]  # the held-out line stays unseen
-    # the fit's measured photos (ours, issue #14): the kept lines and the 64 learned-pattern photos of the primary
+    # the fit's measured photos (ours): the kept lines and the 64 learned-pattern photos of the primary
     # view, and those of the secondary view: the learned patterns light many LEDs at once, so they sample narrow
     # lobes between the lines, and the 45-degree view sees the grazing half-angles where Fresnel lifts a weak
     # specular lobe (docs/accuracy.md: ceramic alpha 21% -> 12% with the primary photos, ...)
     photos, weights = _photos(meas, True, keep)
     # the photos' weight against the lumitexels (FitConfig.lambda_lines) was measured on photos of one frame an
     # exposure; the HDR merge of F frames divides their temporal noise's variance by F while the decoder's error in
-    # the lumitexels stays, so, as an inverse-variance weight, it scales by F (issue #14: with four frames, every
+    # the lumitexels stays, so, as an inverse-variance weight, it scales by F (with four frames, every
     # suite sample's alpha median improves or holds, docs/accuracy.md)
     fit_cfg = replace(config.fit, device=config.device,
                       lambda_lines=config.fit.lambda_lines * session.frames_per_exposure)
@@ -345,10 +346,11 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
 
 class _Checkpoint:
     """A long stage's unfinished state in the stage folder under that stage's key (the checkpoints of
-    reconstruction.stages.finetune.finetune and reconstruction.stages.fitting._fit_direct; the files are reconstruction/output.py's,
-    the stages output.PARTIAL_STAGES). `loaded`: the phase a killed run had reached, if any; `earlier`: the seconds
-    the runs before this one had spent on the stage up to their last save (0 when none), which the stage's timing
-    adds, so that a stage resumed across calls reports the time its result took, not this call's share."""
+    reconstruction.stages.finetune.finetune and reconstruction.stages.fitting.direct._fit_direct; the files are
+    reconstruction/output.py's, the stages output.PARTIAL_STAGES). `loaded`: the phase a killed run had reached, if
+    any; `earlier`: the seconds the runs before this one had spent on the stage up to their last save (0 when none),
+    which the stage's timing adds, so that a stage resumed across calls reports the time its result took, not this
+    call's share."""
 
     def __init__(self, stages: ReconstructionFolder, stage: str, key: str):
         self.stages, self.stage, self.key, self.loaded, self.earlier = stages, stage, key, None, 0.0

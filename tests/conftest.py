@@ -1,4 +1,5 @@
-"""Shared fixtures: the released OpenSVBRDF reference folder and the (cached) rigs.
+"""Shared fixtures: the released OpenSVBRDF reference folder, the (cached) rigs and the `device` each kernel test
+runs on; the end-to-end files (LONG_FILES: first in `make test`, left out of `make test-fast`).
 
 The reference folder lives beside the repository root (`../shared/reference/opensvbrdf_lightstage`).
 It is present on CI and on developers' machines but not on a user's clone, so every test that needs it
@@ -6,6 +7,7 @@ goes through the `reference_dir` fixture, which skips with a fixed reason when i
 """
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -24,18 +26,53 @@ def reference_present() -> bool:
     return (REFERENCE_DIR / "lights.bin").is_file()
 
 
-# The files that take longest, longest first (CI's `--durations`, docs/performance.md "CI"): the material suite
-# (10-14 min in CI, in its own two processes), then those of a minute or more on one core. pytest-xdist hands whole files to its
-# processes in collection order (the Makefile turns off its own reordering by test count, which queued these last),
-# so the short files are left to fill both cores at the end instead of one long file running on alone.
-LONG_FILES = ("test_validate_suite.py", "test_scaleout.py", "test_hardware_capture.py", "test_capture.py",
-              "test_alignment.py", "test_validate.py", "test_train.py", "test_design.py", "test_reconstruct_resume.py")
+# The long files, longest first: the material suite, then those of a minute or more on one core
+# (docs/performance.md, "CI"). `make test` runs them first: pytest-xdist hands whole files to its processes in
+# collection order (the Makefile turns off xdist's own reordering by test count, which queued these last), so the
+# short files fill both cores at the end instead of one long file running on alone.
+LONG_FILES = ("test_validate_suite.py", "test_scaleout.py", "test_hardware_capture.py", "test_bench_pipeline.py",
+              "test_capture.py", "test_alignment.py", "test_validate.py", "test_train.py", "test_design.py",
+              "test_reconstruct_resume.py")
+
+# The end-to-end files, marked `e2e`, which `make test-fast` leaves out: the long files above, and the calibration
+# procedures run on rendered photos, two-process training and the notebooks (each a minute or more on one core).
+END_TO_END_FILES = LONG_FILES + ("test_calibration.py", "test_calibration_colour.py", "test_calibration_leds.py",
+                                 "test_distributed.py", "test_notebooks.py")
 
 
 def pytest_collection_modifyitems(items):
-    """The long files first, longest first (LONG_FILES); the rest in their own order."""
+    """The long files first, longest first (LONG_FILES), the rest in their own order; the tests of
+    END_TO_END_FILES marked `e2e` (`make test-fast` runs `-m "not e2e and not slow"`)."""
+    e2e = set(END_TO_END_FILES)
+    for item in items:
+        if item.path.name in e2e:
+            item.add_marker(pytest.mark.e2e)
     rank = {name: k for k, name in enumerate(LONG_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))
+
+
+@functools.cache
+def devices() -> tuple[str, ...]:
+    """The devices the `device` fixture runs on: the CPU, and the first CUDA device where both Warp and torch see
+    one ("cuda:0" names the same device to both; the kernels' tests hand it to Warp, the fit's to torch, some to
+    both). Asked once, when the first test that takes `device` is collected: it loads Warp and torch."""
+    import torch
+    import warp as wp
+
+    return ("cpu", "cuda:0") if wp.get_cuda_device_count() > 0 and torch.cuda.is_available() else ("cpu",)
+
+
+@pytest.hookimpl(trylast=True)  # after the tests' own parametrize marks: the device ends the id, test_x[mse-cpu]
+def pytest_generate_tests(metafunc):
+    """A test that takes `device` runs once per entry of devices(), its id ending in cpu or cuda:0."""
+    if "device" in metafunc.fixturenames:
+        metafunc.parametrize("device", devices(), indirect=True)
+
+
+@pytest.fixture
+def device(request) -> str:
+    """A device name valid for both Warp and torch: "cpu", and "cuda:0" where present (devices())."""
+    return request.param
 
 
 @pytest.fixture(scope="session")

@@ -1,6 +1,6 @@
 """The layout's rules, checked: layers and cycles (import-linter contracts in pyproject.toml, and a planted
-violation that they catch), one owner per folder format, runtime imports declared as dependencies, and a
-help string for every command-line option."""
+violation that they catch), one owner per folder format, runtime imports declared as dependencies, a
+help string for every command-line option, and `ruff check` clean ([tool.ruff] in pyproject.toml)."""
 from __future__ import annotations
 
 import argparse
@@ -18,6 +18,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hemicube", "twin", "calibration", "reconstruction")
 LINT = shutil.which("lint-imports", path=str(Path(sys.executable).parent)) or "lint-imports"
+RUFF = shutil.which("ruff", path=str(Path(sys.executable).parent)) or shutil.which("ruff")
 
 
 def _lint(cwd: Path) -> subprocess.CompletedProcess:
@@ -159,3 +160,11 @@ def test_every_option_has_help():
     quiet = [f"{cmd}: {'/'.join(a.option_strings)}" for cmd, a in _options(build_parser())
              if a.option_strings and a.default not in (None, False) and "default" not in a.help]
     assert quiet == []
+
+
+@pytest.mark.skipif(RUFF is None, reason="ruff is not installed (it is in the dev extra: pip install -e '.[dev]')")
+def test_ruff_check_is_clean():
+    """`ruff check` on the whole repository, with pyproject.toml's rules (lint only: nothing is reformatted)."""
+    r = subprocess.run([RUFF, "check", "--no-cache", "--output-format", "concise", str(ROOT)], cwd=ROOT,
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
-TIMEOUT_S = 300  # per cell; the tour takes about 15 s on 2 CPU cores
+TIMEOUT_S = 300  # per cell, generous: a cell of these notebooks takes seconds
 MIN_IMAGES = {"tour_of_the_rig.ipynb": 3, "designer.ipynb": 5}  # notebooks whose point is their pictures
 
 

@@ -1,6 +1,6 @@
 """hemicube twin: a digital twin of the OpenSVBRDF light-hemicube.
 
-Public API (names kept stable for later issues and external tests):
+Public API (names kept stable for the other packages, external code and tests):
     twin.load_rig(name_or_dir) -> Rig
     twin.lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, ...)
     twin.measurements(rig, ..., patterns)
@@ -13,7 +13,12 @@ Sub-packages, one per physical thing (docs/architecture.md has the picture):
     twin.materials  SVBRDF texture maps (the OpenSVBRDF contract), built-in samples, EXR files
     twin.camera     image formation (pixel rays, hits, radiance), the sensor, Bayer/PFNC formats, HDR merge
     twin.capture    pattern files and sets, the capture plan, the session folder, device backends
+    twin.targets    calibration targets the twin photographs (ChArUco board, flat-field source, diffuse plate,
+                    ColorChecker)
+    twin.design     figures of merit of capture designs (noise, multiplexing gain, device costs, design files)
     twin.view       the pyvista view of the rig, cross-image plots
+Beside them: the twin's commands (cli.py), its self-checks (checks.py), benchmarks (bench.py), batches on Ray
+(batch.py) and atomic file writes (atomic.py).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Batches of independent jobs on Ray (issue #18): `hemicube capture-many` and `hemicube reconstruct-many`.
+"""Batches of independent jobs on Ray (docs/scale-out.md): `hemicube capture-many` and `hemicube reconstruct-many`.
 
     outcomes = run_batch(jobs, task, done=finished, options=BatchOptions(address=None, gpus_per_task=1))
 

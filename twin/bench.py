@@ -446,7 +446,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     res["total_s_files_excluded"] = sum(v for k, v in seconds.items() if k != "warmup")
 
     checks = []
-    for (kind, cam), surf in surfaces.items():
+    for kind, cam in surfaces:
         H = rig.camera(cam).height
         rows = (max(0, H // 2 - check_rows // 2), min(H, H // 2 - check_rows // 2 + check_rows))
         m = maps if kind == "sample" else None

@@ -1,5 +1,6 @@
 """The twin's sub-commands of `hemicube` (registered by the front, hemicube.cli): rig, show, capture,
-samples, patterns, and the twin's benchmarks (bench lumitexel, bench capture)."""
+capture-many, controller, samples, patterns, and the twin's benchmarks (bench lumitexel, capture, led-link,
+resume, camera-faults). Options and printing only: the work is in the modules each command calls."""
 from __future__ import annotations
 
 import json

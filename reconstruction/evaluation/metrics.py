@@ -1,4 +1,4 @@
-"""Validation metrics (issue #6 item 6): map errors against the ground truth, image scores against the
+"""Validation metrics (docs/accuracy.md): map errors against the ground truth, image scores against the
 held-out photo, and thresholds. Pure functions of arrays: no pipeline logic here (the report folder that shows
 them is reconstruction.evaluation.report).
 
@@ -6,7 +6,7 @@ them is reconstruction.evaluation.report).
     inside = truth_coverage(truth, recon.size_mm, recon.resolution)   # texel centres on the true sample
     m = map_errors(truth_g, recon, mask=inside)                      # dict, see map_errors
     s = image_scores(photo, render, mask=on_sample)                  # {"ssim", "ssim_all", "psnr_db", ...}
-    rows = check({"maps": m, "render": s}, [Threshold("maps.normal_deg.median", "<=", 1.0, "goal, #6")])
+    rows = check({"maps": m, "render": s}, [Threshold("maps.normal_deg.median", "<=", 1.0, "goal")])
     print(format_table(rows))
 
 Metric conventions (every statistic is a {"median", "mean", "p90", "count"} dict over the texels used):
@@ -14,7 +14,7 @@ Metric conventions (every statistic is a {"median", "mean", "p90", "count"} dict
 * tangent_deg: the tangent is an axis (t and −t give the same BRDF), so the angle is taken modulo 180°,
   in [0°, 90°]. Both maps are first put in the export convention αx ≥ αy (reference §5,
   `canonical_anisotropy`), so t is the axis of the larger roughness on both sides. Only texels whose TRUE
-  αx/αy ≥ `anisotropy_ratio` (1.5, issue #6) count: on near-isotropic texels the tangent is undefined
+  αx/αy ≥ `anisotropy_ratio` (1.5, docs/accuracy.md) count: on near-isotropic texels the tangent is undefined
   (reference §7.1 expects "discontinuities where the material is near-isotropic"). The angle is measured in
   the truth's tangent plane (t̂ projected onto it), so it is the error of the anisotropy's orientation
   alone; the tilt of the frame is the normal error, reported separately.
@@ -59,7 +59,7 @@ __all__ = [
     "Threshold", "check", "format_table", "flatten_metrics", "to_jsonable",
 ]
 
-ANISOTROPY_RATIO = 1.5  # issue #6: tangent error "where αx/αy ≥ 1.5"
+ANISOTROPY_RATIO = 1.5  # the tangent's goal holds "where αx/αy ≥ 1.5" (docs/accuracy.md)
 # 5 % of each map's full range (ρd ∈ [0, 1]; ρs ∈ [0, 10], the reference's ps_range, §7.1). Ours.
 RHO_FLOOR = (0.05, 0.5)
 STAT_PERCENTILE = 90.0

@@ -1,4 +1,4 @@
-"""The validation report (issue #6 item 6): the report folder and its images. The numbers come from
+"""The validation report: the report folder and its images. The numbers come from
 reconstruction.evaluation.metrics.
 
     write_report(out, title=..., metrics=..., checks=rows, panels=map_panels(truth_g, recon) + [...],

@@ -1,4 +1,4 @@
-"""Scoring a reconstruction against the twin's ground truth (issue "reconstruction pipeline", item 6).
+"""Scoring a reconstruction against the twin's ground truth (docs/accuracy.md).
 
     metrics, panels = evaluate(capture, recon, rig)
     checks = check(metrics, THRESHOLDS["mini"])            # reconstruction.evaluation.metrics
@@ -21,12 +21,12 @@ from reconstruction.evaluation.metrics import Threshold, image_scores, map_error
 from reconstruction.evaluation.report import RenderPanel, map_panels
 
 # Thresholds of the CI configuration (mini rig, ramps, seed 1, 48^2 texels, the shipped mini network), set
-# once (2026-11-22) from its measured values (in brackets) with a stated margin, and not to be loosened to
+# once from its measured values (in brackets) with a stated margin, and not to be loosened to
 # pass: error medians at 2-4x what was measured (run-to-run and machine-to-machine spread is far smaller;
 # the margin is for honest algorithmic changes), SSIM/PSNR a few points below. docs/accuracy.md has the table.
 THRESHOLDS = {
     "mini": [
-        Threshold("alignment.median_px", "<=", 0.5, "the issue's goal (measured 0.13 px)"),
+        Threshold("alignment.median_px", "<=", 0.5, "the alignment goal (measured 0.13 px)"),
         Threshold("maps.normal_deg.median", "<=", 0.25, "measured 0.06 deg"),
         Threshold("maps.tangent_deg.median", "<=", 2.0, "measured 0.41 deg where alpha_x/alpha_y >= 1.5"),
         Threshold("maps.alpha_x_pct.median", "<=", 8.0, "measured 2.3%; the paper-rig goal is 10%"),
@@ -55,7 +55,9 @@ def _render_lines(rig, positions, params: dict, pattern: np.ndarray, device) -> 
     return m[:, 0] * np.float32(LUMITEXEL_SCALE)
 
 
-def _map_params(maps) -> dict:
+def map_parameters(maps) -> dict:
+    """The GGX parameters of OpenSVBRDF maps as the forward model takes them (twin.lumitexels' keywords), one row
+    a texel."""
     return dict(normal=maps.normal.reshape(-1, 3), tangent=maps.tangent.reshape(-1, 3),
                 rho_d=maps.rho_d.reshape(-1, 3), rho_s=maps.rho_s.reshape(-1, 3),
                 alpha_x=maps.alpha[..., 0].reshape(-1), alpha_y=maps.alpha[..., 1].reshape(-1))
@@ -85,8 +87,8 @@ def evaluate(capture, recon, rig, device="cpu") -> tuple[dict, list]:
     W = meas.line_weights[k]
     photo = meas.lines[:, k].reshape(R, R, 3)
     latent = simulate_lines(recon.model, recon.latent, meas.line_weights[k:k + 1])[:, 0].reshape(R, R, 3)
-    fitted = _render_lines(rig, pos, _map_params(recon.maps), W, device).reshape(R, R, 3)
-    true = _render_lines(rig, pos, _map_params(truth), W, device).reshape(R, R, 3)
+    fitted = _render_lines(rig, pos, map_parameters(recon.maps), W, device).reshape(R, R, 3)
+    true = _render_lines(rig, pos, map_parameters(truth), W, device).reshape(R, R, 3)
     metrics["render"] = {"latent": image_scores(photo, latent), "maps": image_scores(photo, fitted),
                          "truth_maps": image_scores(photo, true)}
 
@@ -97,10 +99,10 @@ def evaluate(capture, recon, rig, device="cpu") -> tuple[dict, list]:
     return metrics, panels + map_panels(truth, recon.maps, mask=on_sample)
 
 
-# The goals every sample must meet (issue #14), whatever the sample, set from the goals (the paper's Fig. 13
+# The goals every sample must meet (docs/accuracy.md), whatever the sample, set from the goals (the paper's Fig. 13
 # "almost exactly" and this project's targets), not from any sample's measured value. They apply at every
 # texture-grid resolution: a grid the pipeline cannot reach them at fails, honestly. The paper rig is held to
-# the same ones and, as issue #13 sets, to the paper's SSIM of 0.98 on real data (§10.1) for the latent render
+# the same ones and to the paper's SSIM of 0.98 on real data (§10.1) for the latent render
 # against the held-out photo.
 _GOALS = [
     Threshold("alignment.median_px", "<=", 0.5, "goal: half a pixel"),

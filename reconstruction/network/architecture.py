@@ -35,7 +35,7 @@ hidden widths scale with L / 12,288 so that a rig of a few hundred LEDs trains o
   views * K; output widths = albedo_dim, shape_dim. Along the albedo path this is 1 + 5 + 11 = 17 fully
   connected layers, the paper's count; the released shape branch has one layer more (6).
 
-The compact architecture (`NetworkConfig.architecture = "compact"`, issue #13 item 1) exists because the
+The compact architecture (`NetworkConfig.architecture = "compact"`, ours) exists because the
 released decoder cannot ship: its 12,288-LED output layer alone is 100 M parameters. It keeps the released
 decoder's first five hidden layers (to 1024 for L = 12,288) and replaces the rest by a factorised output
 layer: a linear bottleneck of `COMPACT_RANK` (256, scaled like the hidden widths, at least 64) with no
@@ -45,7 +45,7 @@ LED dome is a smooth function of direction, which a few hundred bases can hold; 
 narrow peaks is measured in docs/performance.md). Its encoder is the released one at half the hidden
 widths. For the paper rig: 6.5 M parameters, 13 MB as float16 (`reconstruction.network.shipped` ships float16).
 
-The peak term (`NetworkConfig.peak_term`, issue #13 item 1's "decoder conditioned on the LED's direction", with either
+The peak term (`NetworkConfig.peak_term`, ours: a decoder conditioned on the LED's direction, with either
 architecture): a lobe of alpha <= 0.02 lights ~3 of the paper rig's 12,288 LEDs, which a few hundred global bases
 cannot place. The decoder adds one von Mises-Fisher lobe over the LEDs' directions d_l from the sample's centre,
     m_l = m_base,l + A exp(kappa (d_l . c - 1)),  computed as  log(1 + m_l) = logaddexp(y_l, log A + kappa (d_l . c - 1))
@@ -124,7 +124,7 @@ class NetworkConfig:
                        removed (twin.design); their weights are 0 in training and in the exported levels.
     fixed_patterns     the patterns are given (a fixed family: Hadamard, gradients, one LED at a time) and not
                        trained; only the encoder and decoder learn (PatternLayer.set_weights).
-    peak_term          the decoder adds one lobe over the LEDs' directions to its output (`Decoder`; issue #13: the
+    peak_term          the decoder adds one lobe over the LEDs' directions to its output (`Decoder`; ours: the
                        narrow specular peaks that the compact decoder's bases cannot place). The directions are the
                        rig's (`Decoder.set_led_directions`), kept with the weights.
     shared_patterns    True (default): one pattern set photographed by every camera, the physical capture

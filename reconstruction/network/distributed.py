@@ -1,4 +1,4 @@
-"""Training across processes (issue #18): `hemicube train` under torchrun, one process per GPU (NCCL) or per
+"""Training across processes (docs/scale-out.md): `hemicube train` under torchrun, one process per GPU (NCCL) or per
 CPU worker (gloo), through torch.distributed's DistributedDataParallel.
 
     torchrun --nproc_per_node=2 -m hemicube.cli train --rig mini --device cpu -o runs/ddp   # gloo, 2 CPU workers

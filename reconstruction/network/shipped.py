@@ -36,7 +36,7 @@ from reconstruction.network.train import TrainConfig, _evaluate, blind_loss, exp
 
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"
 SHIP_LIMIT = 16 * 2 ** 20
-NARROW_ALPHA = 0.02   # issue #13: the specular peak is scored on lobes with alpha_x, alpha_y <= this
+NARROW_ALPHA = 0.02   # the specular peak is scored on lobes with alpha_x, alpha_y <= this
 FIRST_TEXELS = 8      # per-texel held-out losses kept in model.json, re-evaluated on the CPU in CI
 
 

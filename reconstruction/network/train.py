@@ -29,8 +29,8 @@ resumes. This exists for machines lent in slices of a few minutes (the paper rig
 limit is not part of the config (a chunk's length does not change the trained model), and at least one
 step runs per call, so repeated calls always progress. The final checkpoint save (78 MB for the shipped compact
 paper-rig network, about 2 GB for the released architecture) comes after the limit: leave a margin for it.
-The shards let a chunk's checkpoint leave the machine it ran on: issue #13 item 2 asks for checkpoints of at most
-16 MiB, the largest file a lent GPU machine gives back, so that the next chunk can run on another machine.
+The shards let a chunk's checkpoint leave the machine it ran on: checkpoints in files of at most 16 MiB, the
+largest file a lent GPU machine gives back, so that the next chunk can run on another machine.
 
 Steps. Step i (0-based) trains on batch i of the data stream, so a resumed run sees exactly the data of an
 uninterrupted one; the global torch RNG (dropout, measurement noise) is saved in the checkpoint and
@@ -108,7 +108,7 @@ class TrainConfig:
     dropout: float = 0.3          # paper §6: 30%
     measurement_noise: float = 0.05  # paper §6: 5% multiplicative noise
     architecture: str = "paper"   # "paper" (released) or "compact" (shippable; reconstruction.network.architecture)
-    peak_term: bool = False       # the decoder's lobe over the LEDs' directions (NetworkConfig.peak_term; issue #13)
+    peak_term: bool = False       # the decoder's lobe over the LEDs' directions (NetworkConfig.peak_term)
     # training data distributions (reconstruction.network.data.SamplingConfig defaults, sources given there)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     # a design's layout and pattern family (twin.design): lumitexel indices the patterns leave off, and a

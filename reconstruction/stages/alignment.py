@@ -44,8 +44,8 @@ Two steps, as in the reference:
    +-f px around the refitted homography (a cost volume, `patchmatch.exhaustive`) and the refits go on.
    A part of the sample that the binned level matched farther than f px off the plane keeps that offset.
    Why: at full width the reference's PatchMatch evaluates ~10^3 candidate 7 x 7 x 128 patch costs per
-   pixel and pass, each a scattered read; one alignment had not ended after 290 s on an H100. Through the
-   pyramid it takes ~20 s on an H200 (docs/performance.md), ~2 min on two CPU cores. The mini rig's
+   pixel and pass, each a scattered read: minutes per alignment on a GPU, against seconds through the pyramid
+   (docs/performance.md). The mini rig's
    222-px photos take one level, as before.
 
 Coordinates: pixel (x = column, y = row), centres at integers (twin.rig.units). The map is returned in RAW
@@ -126,7 +126,7 @@ class AlignConfig:
     #                         to this many times (fewer once it moves < 0.1 px); 0 = the reference's single pass
     # ours, what the refit may change: "height" (default), the height of the sample plane that the calibrated
     # cameras see (the sample lies flat on the board, pressed by the holder frame: its one unknown is its
-    # thickness); "homography", all 8 parameters. Measured on issue #14's material suite (mini rig, median px,
+    # thickness); "homography", all 8 parameters. Measured on the material suite (mini rig, median px,
     # homography -> height): leather 0.52 -> 0.20, wood 0.41 -> 0.24, quadrants 0.34 -> 0.14, paper 0.28 ->
     # 0.02, ramps 0.13 -> 0.12: 8 free parameters follow biases of the dense matches on weakly or anisotropically
     # textured samples (its error grows linearly across the sample: a spurious tilt), one cannot.
@@ -145,7 +145,7 @@ class AlignConfig:
     # +-f px around the refitted homography (`patchmatch.exhaustive`) and the refits go on; a part of the
     # sample that the binned level matched farther off the plane than that keeps the binned offset. At full
     # width the reference-scaled PatchMatch needs ~10^3 candidate evaluations of 7 x 7 x 128 values per pixel
-    # and pass, each a scattered read (over 290 s per alignment on an H100, docs/performance.md). None: one
+    # and pass, each a scattered read (minutes per alignment on a GPU, docs/performance.md). None: one
     # level at any width
     pyramid_width: int | None = 700
     seed: int = 0  # PatchMatch's random initialisation and search (torch.Generator)

@@ -15,7 +15,7 @@ photo 128 against the empty-board photo 130), as the largest centred square insi
 Per photo and camera (reference §6.3, with the differences stated):
   0. the capture's photos are the HDR merge's bilinear demosaic (twin.camera.hdr); `demosaic="malvar2004"` reads
      each photosite's own colour back from them (a bilinear demosaic keeps it) and demosaics that mosaic by
-     Malvar-He-Cutler 2004 instead (ours, issue #14): its red and blue reach less across an edge, so a texel next
+     Malvar-He-Cutler 2004 instead (ours): its red and blue reach less across an edge, so a texel next
      to a much brighter highlight takes less of it (the bilinear tent gives ~0.2 of a red or blue value to each
      side at the mini rig's 2.2 px a texel), for more noise and false colour where the colours do not move
      together; the pipeline reads it only for such texels (reconstruction.pipeline, ReconstructConfig.spill_ratio);
@@ -29,8 +29,8 @@ Per photo and camera (reference §6.3, with the differences stated):
      between adjacent texels of that view (1, no filter, under 4 px: the mini rig's 2.3 px at 48^2; the paper
      rig from 512^2 on, and its secondary view, foreshortened to 2.6 px, at 256^2). A texel spanning many
      photosites is then measured by more of them than the ~4 a bilinear lookup reads (the paper rig at 256^2:
-     4.8 px a texel in the primary view, a 3 px box, half the noise). Why not the default (docs/accuracy.md,
-     2026-11-26): on the paper rig at 256^2 with maps as fine as the grid it made normals, alpha and rho_s
+     4.8 px a texel in the primary view, a 3 px box, half the noise). Why not the default (docs/accuracy.md):
+     on the paper rig at 256^2 with maps as fine as the grid it made normals, alpha and rho_s
      20-30% better on satin and wood, but on the mini rig at 24^2 (64^2 maps: texture finer than a texel) it
      made wood's normals and rho_d and paper's alpha (30 -> 52%) worse, scored against the maps at the texel
      centre; and where one view is read over a box and the other at its centre the two disagree.
@@ -38,7 +38,7 @@ Per photo and camera (reference §6.3, with the differences stated):
      pixel step between adjacent texels (only when d > 1.5 px). Why not the default: the GGX fit models the
      BRDF AT the texel centre, and the Gaussian (sigma ~1.1 px for texels 2 px apart) mixes the neighbours'
      light in: a weak lobe next to a glossy one took +1% of the bright lines from its neighbour's highlight
-     (issue #14's paper, wallpaper). Measured on the material suite (mini rig, 48², same captures,
+     (the suite's paper, wallpaper). Measured on the material suite (mini rig, 48², same captures,
      docs/accuracy.md): without it the median normal error halved where there is relief (wood 0.18 -> 0.08°,
      leather 0.20 -> 0.11°, wallpaper 0.31 -> 0.15°), alpha was better on 8 of 10 samples (wallpaper 7.5/9.4%
      -> 4.6/6.7%); a point sample is noisier, so rho_s got worse on the weak lobes (fabric 10.2 -> 12.9%,
@@ -253,8 +253,8 @@ FOOTPRINTS = {"point": (lambda steps: 0, None), "cell": (_cell_width, _box), "ga
 
 def _taps(shape, uv: np.ndarray) -> tuple:
     """The bilinear taps (reconstruction.stages.alignment.bilinear_taps) of the points uv (N, 2) in an image of `shape`:
-    computed once per view, as every photo of a view is sampled at the same points (ours, issue #12: a photo
-    sampled at 1024^2 texels, 0.239 s with its own taps, 0.209 s with its view's; docs/performance.md)."""
+    computed once per view, as every photo of a view is sampled at the same points (ours: a photo
+    sampled at 1024^2 texels then skips the taps' share of its time; docs/performance.md)."""
     from reconstruction.stages.alignment import bilinear_taps
 
     return bilinear_taps(shape, uv[:, 0], uv[:, 1])
@@ -326,7 +326,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
         return _sample(photo(k, c), views[c][0], footprint, views[c][1])
 
     # the photos are read, checked, corrected and sampled by a pool of threads (EXR decoding, sha256 and numpy
-    # release the GIL): a paper-rig capture is 196 photos of 74 MB, ~0.5 s each on one core
+    # release the GIL): a paper-rig capture is 196 photos of 74 MB, each a long read on one core
     jobs = [(k, c) for c in (0, 1) for k in ix.learned] + [(k, 0) for k in ix.lines] + [(ix.bottom, 0), (ix.empty_bottom, 0)]
     with ThreadPoolExecutor(max_workers=min(READERS, os.cpu_count() or 1)) as pool:
         values = dict(zip(jobs, tqdm(pool.map(sampled, jobs), total=len(jobs), desc="extract",

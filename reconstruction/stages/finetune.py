@@ -4,6 +4,7 @@ batched over all texels.
     res = finetune(model, latent, lines, line_weights, FinetuneConfig(holdout=(31,)))
     res.latent            # (N, 72) [a_R(8), a_G(8), a_B(8), s(48)], the pass-3 latent
     simulate_lines(model, res.latent, line_weights)   # (N, K, 3) M_sim, also for the validation renders
+    latent_for_lumitexels(model, res.latent, m, steps)  # the latent nearest known lumitexels m (Eq. 3): a ceiling
 
 Inputs. `latent` (N, 56) = the network's grey latent [a(8), s(48)] (reference §3.2 output order);
 `lines` (N, K, 3) = each texel's K linear-light photo measurements, primary view, in network units (the
@@ -51,14 +52,14 @@ Iterations (`FinetuneConfig.source`):
   (Ours: a ratio with E_{s-lag} = 0 is 100 when E_s = 0 too and +inf otherwise.)
 * "paper" (paper §7.1): exactly 100 / 50 / 200 iterations, no early stopping.
 
-Batching (issue #6: "all texels are optimised together in large batches on the GPU, not 100 at a time").
+Batching (ours: all texels are optimised together in large batches on the GPU, not the reference's 100 at a time).
 Batches of `batch` texels (16,384 by default; None: all N texels as one batch). Each texel's gradient depends
 only on its own latent (the decoder is evaluated in eval mode: no dropout, no BatchNorm) and Adam is element-wise,
 so without early stopping a texel's result does not depend on its batch (up to float rounding in batched matrix
 products). WITH early stopping it does: the objective is the batch SUM (as in the reference, whose batches of
 100 stop together), so the stopping ratio is the batch's, which stops when the batch as a whole stops improving.
-Memory: backpropagation keeps the decoder's activations; measured with the shipped compact paper-rig network,
-9.6 GiB for 16,384 texels (H100, 2026-11-25), which is why the default batch bounds it.
+Memory: backpropagation keeps the decoder's activations, about 10 GiB for 16,384 texels with the shipped compact
+paper-rig network (docs/performance.md), which is why the default batch bounds it.
 
 Hold-out (paper §7.1 holds out 1 of 64 line photos; the released code uses all 64, reference §9.7):
 `holdout` line indices are left out of the objective and of nothing else (simulate_lines renders every line).
@@ -79,7 +80,7 @@ import torch
 from reconstruction.network.architecture import AcquisitionNet, _is_int, _is_real
 
 __all__ = ["FinetuneConfig", "FinetuneResult", "EarlyStopRule", "EARLY_STOP", "SOURCES", "PASSES", "finetune",
-           "simulate_lines", "decode_rgb", "decoded_lumitexels", "grey_to_rgb"]
+           "simulate_lines", "decode_rgb", "decoded_lumitexels", "grey_to_rgb", "latent_for_lumitexels"]
 
 PASSES = ("pass0", "pass1", "pass2", "pass3")
 CHANNELS = "RGB"
@@ -138,19 +139,18 @@ class FinetuneConfig:
     iterations      override of the per-pass iteration caps (3 ints >= 0); None: from `source`.
     lrs             Adam learning rates per pass: 0.02 / 0.05 / 0.02 (paper and code agree).
     early_stopping  None: from `source` (on for "code", off for "paper").
-    batch           texels per batch (issue #6: large batches, not the reference's 100); None: all at once. The
-                    default bounds the memory (issue #12): the shipped paper-rig network allocated 9.6 GiB for
-                    16,384 texels on an H100 (2026-11-25), 37.8 GiB for 65,536 in one batch, and a larger batch
-                    gains nothing once the GPU is full.
+    batch           texels per batch (large batches, not the reference's 100); None: all at once. The default
+                    bounds the memory: the shipped paper-rig network allocates about 10 GiB for 16,384 texels, four
+                    times that for 65,536 in one batch (docs/performance.md), and a larger batch gains nothing once
+                    the GPU is full.
     holdout         line indices left out of the objective (the paper holds out 1 of 64; code: none).
     sqrt_eps        eps inside the square roots of the objective, network units (ours; module docstring).
     device          torch device of the optimisation ("cpu", "cuda", "cuda:1", ...); the model must be on it.
-    precision       the matrix products of the passes on a CUDA device (issue #12's "mixed precision where it
-                    measurably does not hurt"): "tf32" (the tensor cores' 10-bit mantissa, float32 range and sums)
-                    or "float32". On an H100 with the shipped paper-rig network and these defaults, TF32 ran the
-                    passes 1.8x faster (14.8 -> 8.1 s for 65,536 texels) with the median per-texel pass-3
-                    objective 0.31% above float32's, inside the issue's 1% (docs/performance.md; at the paper's
-                    fixed 350 steps, source "paper", it is 1.5%: use float32 there). On the CPU every
+    precision       the matrix products of the passes on a CUDA device (mixed precision where it measurably does
+                    not hurt): "tf32" (the tensor cores' 10-bit mantissa, float32 range and sums) or "float32".
+                    With the shipped paper-rig network and these defaults, TF32 runs the passes faster with the
+                    median per-texel pass-3 objective 0.31% above float32's, inside 1% (docs/performance.md; at
+                    the paper's fixed 350 steps, source "paper", it is 1.5%: use float32 there). On the CPU every
                     product is float32 whatever the setting (the same bits). Only fine-tuning: the decoded
                     lumitexels the fit reads stay float32 (the fit has its own FitConfig.precision).
     """
@@ -309,7 +309,7 @@ def simulate_lines(model, latent72, line_weights, batch: int | None = 16384) -> 
     """M_sim (N, K, 3) float32 of RGB latents (N, 3 ad + sd) under line_weights (K, L_upper, 3): channel c
     decodes (a_c, s) and is weighted by W[..., c] (reference §4 pass 3). Runs on the model's device, in
     eval mode, `batch` texels at a time (None: all; the default bounds the decoder's memory as decode_rgb's
-    does: 262,144 paper-rig texels at once asked an H100 for 36 GiB more, 2026-11-25)."""
+    does: 262,144 paper-rig texels at once need more than a GPU's memory)."""
     ad, _, num_leds = _check_model(model)
     x = _checked_latent72(model, latent72)
     w = _check_weights(line_weights, num_leds)
@@ -342,11 +342,11 @@ def decoded_lumitexels(model, latent72, batch: int = 16384, max_bytes: int = 2 *
     """The RGB lumitexels (decode_rgb) for reconstruction.stages.fitting.fit_ggx, on the model's device: decoded at once
     where they take at most `max_bytes` (a mini-rig grid: 11 MB), else a lumitexel source, a function of texel
     indices (a tensor) that decodes those texels when the fit asks for a chunk, so that only a chunk's lumitexels
-    exist at a time (issue #12: a 1024^2 paper-rig sample's are 150 GB). The latents are checked and moved to the
+    exist at a time (a 1024^2 paper-rig sample's are 150 GB). The latents are checked and moved to the
     device once; a chunk decoded again costs a third of one fine-tuning step (a forward pass, no backward).
     `precision` (PRECISIONS): the decoder's matrix products on a CUDA device, the fine-tuning's
     (FinetuneConfig.precision), so that the fit's targets are what the fine-tuned latents decode to where they were
-    fitted; "tf32" halves a decode of the paper rig's 12,288 LEDs (0.058 -> 0.029 s for 65,536 texels on an H100,
+    fitted; "tf32" halves the time of a decode of the paper rig's 12,288 LEDs (docs/performance.md;
     log1p(m) within 2.6e-3, RMS 5.7e-5; the decoder's own error is ~0.05 RMS). The CPU's are float32 either way."""
     from twin.optics.torch_ops import tf32_products  # Warp's kernels load with it: not at this module's import
 
@@ -359,6 +359,34 @@ def decoded_lumitexels(model, latent72, batch: int = 16384, max_bytes: int = 2 *
             return _decode_rows(model, x if idx is None else x[idx.to(x.device)], batch, x.device)
 
     return source() if x.shape[0] * _check_model(model)[2] * 3 * 4 <= max_bytes else source
+
+
+def latent_for_lumitexels(model, latent72, lumitexels, steps: int, lr: float = 0.02,
+                          batch: int = 4096) -> tuple[np.ndarray, float, float]:
+    """The RGB latents (N, 3 ad + sd) that Adam (lr) reaches in `steps` steps from latent72 when it minimises paper
+    Eq. 3 between their decode (decode_rgb) and the given lumitexels (N, L_upper, 3): the sum over the texels, LEDs
+    and channels of (log(1 + m_hat) - log(1 + m))^2. No photos: as near as this search takes the decoder to each
+    texel's lumitexel, the decoder's ceiling (docs/accuracy.md). `batch` texels at a time: a texel's term depends on
+    its own latent only, and Adam's update is elementwise, so the batches do not change the result. Returns (the
+    latents, the objective at the start, at the last step)."""
+    ad, _, num_leds = _check_model(model)
+    x = _checked_latent72(model, latent72)
+    m = _as_float_tensor("lumitexels", lumitexels)
+    if m.shape != (x.shape[0], num_leds, 3):
+        raise ValueError(f"lumitexels must have shape ({x.shape[0]}, {num_leds}, 3), got {tuple(m.shape)}")
+    dev = _model_device(model)
+    out, first, last = np.empty(tuple(x.shape), np.float32), 0.0, 0.0
+    with _frozen(model), torch.enable_grad():
+        for i in range(0, x.shape[0], batch):
+            target = torch.log1p(m[i:i + batch].to(dev).permute(2, 0, 1))  # (3, B, L), as _decode_rgb's
+
+            def energy(z):
+                return (torch.log1p(_decode_rgb(model, z, ad)) - target).square().sum()
+
+            z, hist, _ = _adam_run(x[i:i + batch].to(dev), energy, steps, lr, None)
+            out[i:i + batch] = z.cpu().numpy()
+            first, last = first + hist[0], last + hist[-1]
+    return out, first, last
 
 
 def _checked_latent72(model, latent72) -> torch.Tensor:
@@ -452,8 +480,8 @@ def _sync(device: torch.device) -> None:
 def _release(device: torch.device) -> None:
     """Give torch's cached GPU blocks back to the device at the end of a stage: the decoder's activations are
     sized unlike the next stage's tensors (the fit's, Warp's), which otherwise come on top of the cache
-    (issue #12 counts the device's used memory: 62 GB for a 65,536-texel paper-rig bench, 2026-11-25, against
-    28 GiB that torch ever held at once)."""
+    (the device's used memory counts, and the cache held twice what torch ever held at once in a paper-rig bench;
+    docs/performance.md)."""
     if device.type == "cuda":
         torch.cuda.empty_cache()
 

@@ -1,7 +1,7 @@
-"""Camera calibration (issue #16, cameras) against the twin's truth: ChArUco photos of a perturbed paper rig
-(2664 x 2304 px cameras, the size the issue names: the mini rig's 222 x 192 px are too small for corner
-detection) are rendered through each true camera's full model, and calibration.cameras recovers each camera
-from them alone. Goals (issue #16): reprojection RMS <= 0.3 px, focal length within 0.1%; and what matters
+"""Camera calibration against the twin's truth: ChArUco photos of a perturbed paper rig (2664 x 2304 px
+cameras, the paper's device: the mini rig's 222 x 192 px are too small for corner detection) are rendered
+through each true camera's full model, and calibration.cameras recovers each camera from them alone. Goals
+(calibration.cameras.CAMERA_GOALS): reprojection RMS <= 0.3 px, focal length within 0.1%; and what matters
 downstream, where the sample's points land, within 0.1 px where the nominal rig is off by tens of pixels."""
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 import twin
-from calibration.cameras import CalibrationError, detect
-from calibration.cli import CAMERA_GOALS, calibrate_cameras
+from calibration.cameras import CAMERA_GOALS, CalibrationError, calibrate_cameras, detect
 from twin.rig.perturb import perturb_cameras
 from twin.targets.charuco import CharucoTarget
 

@@ -1,4 +1,4 @@
-"""Colour calibration (issue #16): the spectral model against colour-science's own integrations, the chart's
+"""Colour calibration: the spectral model against colour-science's own integrations, the chart's
 layout and its agreement with the twin's RGB renders, the procedure on noise-free photos, a whole calibration
 of a perturbed mini rig (a seed held back from the one documented) and its bad-input errors."""
 import json
@@ -188,10 +188,10 @@ def test_calibrate_several_procedures_in_a_labs_order(tmp_path, rig):
 def test_validate_makes_a_missed_goal_the_exit_status(tmp_path, monkeypatch, capsys):
     """A calibration that misses a goal (here: a goal no calibration meets) writes its rig and report and exits
     0; with --validate it exits 1. Both print FAIL."""
-    import calibration.cli as cli
+    import calibration.colour
     from hemicube.cli import main
 
-    monkeypatch.setitem(cli.COLOUR_GOALS, "delta_e2000_median", 1e-6)
+    monkeypatch.setitem(calibration.colour.COLOUR_GOALS, "delta_e2000_median", 1e-6)
     args = ["calibrate", "colour", "--rig", "mini", "--frames", "2", "--led-step", "12", "--no-progress"]
     assert main([*args, "-o", str(tmp_path / "a")]) == 0
     assert main([*args, "--validate", "-o", str(tmp_path / "b")]) == 1

@@ -1,7 +1,7 @@
-"""LED calibration (issue #16: positions, normals, profiles Psi, RGB intensities) against the twin's truth: a
+"""LED calibration (positions, normals, profiles Psi, RGB intensities) against the twin's truth: a
 perturbed mini rig photographs a diffuse plate at two heights, each LED alone, through its sensor model, and
-calibration.leds recovers the LEDs from those photos alone. Goals (issue #16): LED position within 0.5 mm
-(median), Psi within 2% over the directions in which each LED lights the sample."""
+calibration.leds recovers the LEDs from those photos alone. Goals (calibration.leds.LED_GOALS): LED position
+within 0.5 mm (median), Psi within 2% over the directions in which each LED lights the sample."""
 from __future__ import annotations
 
 import math
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import twin
-from calibration.cli import LED_GOALS, calibrate_leds_from_plate
-from calibration.leds import LEDCalibrationError, _log_geometry, calibrate_leds, plate_samples
+from calibration.leds import (LED_GOALS, LEDCalibrationError, _log_geometry, calibrate_leds, calibrate_leds_from_plate,
+                             plate_samples)
 from twin.rig.perturb import perturb_leds
 from twin.targets.diffuse import DiffusePlate
 

@@ -19,6 +19,7 @@ def _run(argv, capsys):
 LUMI = ["bench", "lumitexel", "--rig", "mini", "--points", "16", "--repeats", "1", "--no-compile"]
 
 
+@pytest.mark.slow
 def test_bench_lumitexel_baseline_matches(capsys):
     rc, res, _ = _run(LUMI, capsys)
     assert rc == 0 and res["passed"]
@@ -106,6 +107,7 @@ def test_bench_fit_forward_baseline_matches_to_the_bit_and_drift_fails(capsys, m
 JAC = ["bench", "fit-jacobian", "--rig", "mini", "--texels", "64", "--repeats", "1"]
 
 
+@pytest.mark.slow
 def test_bench_fit_jacobian_checks_the_analytic_one_and_a_one_percent_error_fails(capsys, monkeypatch):
     rc, res, _ = _run(JAC, capsys)
     assert rc == 0 and res["passed"] and set(res["seconds"]) == {"analytic", "baseline_forward_difference",
@@ -115,7 +117,7 @@ def test_bench_fit_jacobian_checks_the_analytic_one_and_a_one_percent_error_fail
     assert c["forward_difference_median_rel_diff"] > c["median_rel_diff"]  # the baseline's truncation, reported
     assert system["check"] == "normal_equations_vs_stored_jacobian"
     assert max(system["median_rel_diff_JJt"], system["median_rel_diff_Jr"]) < system["bound"] / 10
-    import reconstruction.stages.fitting as F
+    import reconstruction.stages.fitting.jacobian as F
 
     plain = F._analytic_jacobian
     monkeypatch.setattr(F, "_analytic_jacobian", lambda *a: plain(*a) * 1.01)
@@ -123,10 +125,11 @@ def test_bench_fit_jacobian_checks_the_analytic_one_and_a_one_percent_error_fail
     assert rc == 1 and "analytic_vs_central_difference_jacobian" in err
 
 
+@pytest.mark.slow
 def test_bench_fit_jacobian_fails_a_normal_equations_one_row_off(capsys, monkeypatch):
-    """The Warp-summed system (fitting._normal_equations) against the stored Jacobian's: its J r off by 1% fails
-    the check."""
-    import reconstruction.stages.fitting as F
+    """The Warp-summed system (fitting.jacobian._normal_equations) against the stored Jacobian's: its J r off by 1%
+    fails the check."""
+    import reconstruction.stages.fitting.jacobian as F
 
     plain = F._normal_equations
     monkeypatch.setattr(F, "_normal_equations", lambda *a: (lambda A, g, e: (A, g * 1.01, e))(*plain(*a)))
@@ -145,6 +148,7 @@ def test_fit_benches_refuse_bad_counts_before_any_work(bench, argv, message, cap
 CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--resolution", "32", "--scale", "0.5"]
 
 
+@pytest.mark.slow
 def test_bench_capture_whole_plan_and_checks(capsys, monkeypatch):
     rc, res, _ = _run(CAPTURE, capsys)
     assert rc == 0 and res["passed"] and res["photos"] == 196
@@ -167,7 +171,7 @@ def test_untrained_bench_network_gets_the_measurements_batch_statistics():
     import torch
 
     import twin
-    from reconstruction.bench import _normalise_encoder
+    from reconstruction.bench.reconstruct import _normalise_encoder
     from reconstruction.stages.latents import decode
     from reconstruction.network.architecture import AcquisitionNet
     from reconstruction.network.train import TrainConfig

@@ -1,4 +1,4 @@
-"""The capture designer (issue #17): design files checked on load, the device costs against the LED
+"""The capture designer (docs/designer.md): design files checked on load, the device costs against the LED
 controller's emulator and closed forms, the network with fixed or masked patterns, and `hemicube design
 evaluate` end to end on the mini rig."""
 from __future__ import annotations

@@ -55,7 +55,7 @@ def test_validate_any_map_folder(tmp_path, capsys):
 
 
 def test_paper_rig_goals_are_the_suites_and_the_latent_render():
-    """The paper rig is held to the suite's goals and to issue #13's SSIM >= 0.98 of the latent render,
+    """The paper rig is held to the suite's goals and to the paper's SSIM >= 0.98 of the latent render,
     whatever the sample or grid (no paper-rig measurement sets them)."""
     from reconstruction.evaluation.validation import GOALS, thresholds_for
 
@@ -66,7 +66,7 @@ def test_paper_rig_goals_are_the_suites_and_the_latent_render():
 
 
 def test_paper_rig_on_the_cpu_says_how_long_instead_of_running(tmp_path, capsys):
-    """Issue #13 item 5: `hemicube validate --rig paper` on the CPU stops at once with a timed estimate (hours)
+    """`hemicube validate --rig paper` on the CPU stops at once with a timed estimate (hours)
     and what to do, in one line, and makes no folder."""
     rc = hemicube.cli.main(["validate", "--rig", "paper", "-o", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip()

@@ -1,4 +1,4 @@
-"""The material suite (issue #14): `hemicube validate --suite` on the suite and its held-back samples, run once,
+"""The material suite (docs/accuracy.md): `hemicube validate --suite` on the suite and its held-back samples, run once,
 two at a time, each held to the mini rig's goals. A file of its own: the test processes (pytest-xdist) take a
 file each, and the suite is the longest, so the main job's tests run beside it rather than after it.
 """
@@ -9,8 +9,8 @@ import pytest
 from reconstruction.evaluation.validation import thresholds_for
 from twin.materials.samples import SUITE
 
-# --- the material suite (issue #14) ---------------------------------------------------------------------
-# The held-back samples (issue #14 item 3): other seeds, i.e. other compositions of every other suite category,
+# --- the material suite -----------------------------------------------------------------------------------
+# The held-back samples: other seeds, i.e. other compositions of every other suite category,
 # chosen before any of them was run; the tuning never looked at them.
 HELD_BACK = tuple(f"{name}@{9001 + k}" for k, name in enumerate(SUITE) if k % 2 == 0)
 # Samples that miss the goals today, and why (docs/accuracy.md, "Open"), by their full name: (reason, strict).

@@ -15,7 +15,7 @@ from reconstruction.stages.alignment import AlignConfig, AlignmentError, align_v
 from reconstruction.stages.patchmatch import PatchCost, exhaustive, patchmatch, subpixel
 from twin.rig.camera import Camera
 
-GOAL_PX = 0.5  # issue #6: median alignment error <= 0.5 px
+GOAL_PX = 0.5  # the goal: median alignment error <= 0.5 px (docs/accuracy.md)
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -1,5 +1,5 @@
-"""Training under torchrun (issue #18, reconstruction.network.distributed): a 2-process gloo run matches a 1-process
-run with the same global batch, and a checkpoint written by rank 0 is resumed by every rank.
+"""Training under torchrun (reconstruction.network.distributed, docs/scale-out.md): a 2-process gloo run matches a
+1-process run with the same global batch, and a checkpoint written by rank 0 is resumed by every rank.
 
 The processes are real: `python -m torch.distributed.run --standalone --nproc_per_node=2 -m hemicube.cli train`.
 Dropout and the measurement noise are 0 here (they are per-rank draws, docs/scale-out.md); the data are

@@ -62,6 +62,7 @@ def _true_params(cap, rig, grid):
         b["transparency"][:, 0]
 
 
+@pytest.mark.slow
 def test_texture_grid_covers_the_sample(extracted, mini):
     """ramps is 120 mm wide: the detected square is 120 mm within a pixel (~1 mm), then shrunk by 6.5% a side."""
     cap, grid, meas = extracted
@@ -71,6 +72,7 @@ def test_texture_grid_covers_the_sample(extracted, mini):
     assert texture_grid(cap, mini, 16, size_mm=50.0) == TextureGrid(16, 50.0)
 
 
+@pytest.mark.slow
 def test_learned_measurements_match_the_true_maps(extracted, mini):
     cap, grid, meas = extracted
     model, _ = load_pretrained("mini")
@@ -94,6 +96,7 @@ def _line_errors(cap, rig, grid, meas) -> np.ndarray:
     return np.abs(meas.lines - exact) / np.abs(exact).max(axis=(1, 2), keepdims=True)
 
 
+@pytest.mark.slow
 def test_line_measurements_and_transparency_match_the_true_maps(extracted, mini):
     cap, grid, meas = extracted
     _, beta = _true_params(cap, mini, grid)
@@ -104,6 +107,7 @@ def test_line_measurements_and_transparency_match_the_true_maps(extracted, mini)
     assert np.median(err) < 0.01 and np.percentile(err, 95) < 0.1, (np.median(err), np.percentile(err, 95))
 
 
+@pytest.mark.slow
 def test_decode_and_latent_exr(extracted, tmp_path):
     cap, grid, meas = extracted
     model, _ = load_pretrained("mini")
@@ -134,6 +138,7 @@ def test_calibrations_undo_the_optics(mini):
         colour_matrix(singular)
 
 
+@pytest.mark.slow
 def test_bad_captures_are_refused(extracted, mini, tmp_path):
     cap, grid, _ = extracted
     from reconstruction.pipeline import reconstruct
@@ -257,6 +262,7 @@ def test_taps_once_sample_as_bilinear_does():
         bilinear_at(np.zeros((31, 40, 3)), taps)
 
 
+@pytest.mark.slow
 def test_malvar2004_photos_are_read_from_the_captured_mosaic(extracted, mini):
     """Step 0: a captured photo is the HDR merge's bilinear demosaic of its mosaic, which keeps each photosite's own
     colour, so the mosaic read back from it and demosaiced bilinearly again gives the photo to float32 rounding; the
@@ -287,7 +293,10 @@ def test_spill_texels_are_the_neighbours_of_a_much_brighter_highlight():
     n = R * C
     alpha = np.full(n, 0.5, np.float32)
     rho_s = np.full((n, 3), 0.2, np.float32)
-    fit = lambda a, s: FitResult(np.zeros((n, 3)), np.zeros((n, 3)), a, a, np.zeros((n, 3)), s)
+
+    def fit(a, s):
+        return FitResult(np.zeros((n, 3)), np.zeros((n, 3)), a, a, np.zeros((n, 3)), s)
+
     assert not spill_texels(fit(alpha, rho_s), (R, C), 4.0).any()
     a = alpha.copy()
     a[2 * C + 3] = 0.2  # peak 0.2 / 0.04 = 5, against 0.2 / 0.25 = 0.8 around it: 6.25 times

@@ -13,8 +13,9 @@ import torch
 
 import twin
 from reconstruction.network.data import LUMITEXEL_SCALE, synthesize
-from reconstruction.stages import fitting
+from reconstruction.stages.fitting import direct, geometry, problem, solver
 from reconstruction.stages.fitting import FitConfig, FitResult, fit_ggx, fit_method, to_maps
+from reconstruction.stages.fitting.config import GEOMETRY_SIZE
 from twin.capture.pattern_sets import linear_lights
 from twin.materials.samples import SVBRDFMaps, read_maps, write_maps
 
@@ -252,7 +253,7 @@ def test_bad_inputs(mini, fitted):
 def test_roughness_tensor_coordinates_round_trip():
     """_to_tensor / _from_tensor (the joint prior's coordinates): the same lobe back, as (theta, alpha_x,
     alpha_y) or its 90-degree turn with the alphas swapped; an isotropic lobe is d = 0 whatever theta."""
-    from reconstruction.stages.fitting import _from_tensor, _to_tensor
+    from reconstruction.stages.fitting.geometry import _from_tensor, _to_tensor
 
     g = torch.Generator().manual_seed(3)
     q = torch.cat([torch.randn(64, 2, generator=g) * 0.2, torch.rand(64, 1, generator=g) * 6 - 3,
@@ -277,30 +278,29 @@ def test_frame_derivatives_match_forward_mode_autodiff(dtype, tol):
     from types import SimpleNamespace
 
     g = torch.Generator().manual_seed(5)
-    N = fitting._unit(torch.tensor([0.1, -0.2, 1.0], dtype=torch.float64))
-    X = fitting._unit(torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), N, dim=-1))
+    N = geometry._unit(torch.tensor([0.1, -0.2, 1.0], dtype=torch.float64))
+    X = geometry._unit(torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), N, dim=-1))
     frame = torch.stack([N, X, torch.linalg.cross(N, X, dim=-1)]).to(dtype)
     q = (torch.randn(200, 5, generator=g, dtype=torch.float64) * torch.tensor([0.4, 0.4, 2.0, 0.5, 0.5],
                                                                               dtype=torch.float64)).to(dtype)
-    geom, d_frame, d_log_alpha = fitting._frame_derivatives(SimpleNamespace(frame=frame), q)
+    geom, d_frame, d_log_alpha = geometry._frame_derivatives(SimpleNamespace(frame=frame), q)
 
     def rows(g3):
-        f = fitting._frame_of(g3[None], frame)
+        f = geometry._frame_of(g3[None], frame)
         return torch.stack([f["tangent"], torch.linalg.cross(f["normal"], f["tangent"], dim=-1), f["normal"]], 1)[0]
 
     ref = torch.stack([torch.func.jacfwd(rows)(q[i, :3]) for i in range(q.shape[0])]).permute(0, 3, 1, 2)
     assert float((d_frame[:, :3] - ref).abs().max()) < tol
     assert not d_frame[:, 3:].any()
     assert torch.equal(d_log_alpha[:, 3:], torch.eye(2, dtype=dtype).expand(200, 2, 2))
-    f = fitting._frame_of(q, frame)
+    f = geometry._frame_of(q, frame)
     assert torch.equal(geom["normal"], f["normal"]) and torch.equal(geom["tangent"], f["tangent"])
 
 
-@pytest.mark.parametrize("device", ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else []))
 def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     """A 6 x 8 grid: a rough, weak lobe on a bright diffuse (paper stock: the lobe is ~1% of a line photo)
     next to a glossy ink of another colour, lines with 0.4% seeded photo noise (the extracted lines' level,
-    issue #14) and lumitexels with 2%. Each texel alone errs on the weak lobe's alpha; the joint prior (FitConfig.alpha_prior)
+    docs/accuracy.md) and lumitexels with 2%. Each texel alone errs on the weak lobe's alpha; the joint prior (FitConfig.alpha_prior)
     pools its photos and meets the 10% goal there, while the glossy texels keep their own alpha (the prior
     does not reach across the change of colour)."""
     R, C = 6, 8
@@ -329,7 +329,7 @@ def test_joint_prior_pools_a_weak_lobe_and_keeps_a_clear_one(mini, device):
     assert np.median(rs_joint[weak]) < 0.5 * np.median(rs_alone[weak])
     assert np.median(joint[~weak]) < 0.02 and np.max(np.abs(joint[~weak] - alone[~weak])) < 0.01
     assert np.median(rs_joint[~weak]) < 0.01
-    # the glossy texels' photos pin their roughness (fitting._pinned): the joint prior leaves them, and only them
+    # the glossy texels' photos pin their roughness (joint._pinned): the joint prior leaves them, and only them
     assert pinned == [None, int((~weak).sum())]
     # each trial: [median damping of the free texels, relative change of F, share of them whose model held]
     assert len(trials) >= 3 and trials[0][0] == FitConfig().lm_damping and all(len(t) == 3 for t in trials)
@@ -352,13 +352,13 @@ def test_a_refit_fits_again_only_the_texels_whose_photos_changed(mini, monkeypat
     cfg = FitConfig(alpha_prior=0.05)
     first = fit_ggx(mini, p["position"], m, lines=lines * noise, line_weights=w, grid_shape=(R, C), config=cfg)
     whole = fit_ggx(mini, p["position"], m2, lines=lines2 * noise, line_weights=w, grid_shape=(R, C), config=cfg)
-    sizes, initial = [], fitting._initial
+    sizes, initial = [], direct._initial
 
     def spy(part):
         sizes.append(part.n)
         return initial(part)
 
-    monkeypatch.setattr(fitting, "_initial", spy)
+    monkeypatch.setattr(direct, "_initial", spy)
     refit = fit_ggx(mini, p["position"], m2, lines=lines2 * noise, line_weights=w, grid_shape=(R, C), config=cfg,
                     start=(first.info["texel_q"], redo))
     assert sizes == [int(redo.sum())]
@@ -379,7 +379,7 @@ def test_a_refit_fits_again_only_the_texels_whose_photos_changed(mini, monkeypat
         def save(self, state):
             self.state = state
 
-    old = Saved({"phase": "chunks", "chunks_done": 0, "q": np.zeros((R * C, fitting.GEOMETRY_SIZE), np.float32),
+    old = Saved({"phase": "chunks", "chunks_done": 0, "q": np.zeros((R * C, GEOMETRY_SIZE), np.float32),
                  "history": np.zeros(cfg.steps), "restarted": [],
                  "seconds": {"init": 0.0, "iterations": 0.0, "propagation": 0.0, "joint": 0.0}})
     resumed = fit_ggx(mini, p["position"], m2, lines=lines2 * noise, line_weights=w, grid_shape=(R, C), config=cfg,
@@ -397,10 +397,10 @@ def test_a_refit_fits_again_only_the_texels_whose_photos_changed(mini, monkeypat
 
 
 def test_pinned_texels_are_those_whose_roughness_the_photos_fix_to_a_quarter_of_tau():
-    """fitting._pinned against the closed form: the variance of the mean log alpha m is the [m, m] entry of the
+    """joint._pinned against the closed form: the variance of the mean log alpha m is the [m, m] entry of the
     inverse of the texel's 5 x 5 information matrix (every other number free); pinned where its square root is
     under tau / 4."""
-    from reconstruction.stages.fitting import _pinned
+    from reconstruction.stages.fitting.joint import _pinned
 
     rng = np.random.default_rng(3)
     G = rng.standard_normal((400, 5, 12))
@@ -417,7 +417,8 @@ def test_diffuse_normal_finds_a_steep_tilt(mini):
     """_diffuse_normal (photometric stereo on the LEDs below the highlight, an initial candidate): texels
     tilted 35-50 deg, narrow and broad lobes, exact targets: within 1 deg of the true normal; the half vector of
     the brightest LED (_peak_normal) is not (for these the mirror direction leaves the LED dome)."""
-    from reconstruction.stages.fitting import _diffuse_normal, _peak_normal, _problem
+    from reconstruction.stages.fitting.candidates import _diffuse_normal, _peak_normal
+    from reconstruction.stages.fitting.problem import _problem
 
     tilts = [(35, 20), (40, 100), (45, 200), (50, 300), (45, 0), (50, 150)]
     n = len(tilts)
@@ -442,23 +443,23 @@ def test_diffuse_normal_finds_a_steep_tilt(mini):
 def test_propagation_restarts_in_chunks(mini, fitted, monkeypatch):
     """Neighbour propagation restarts its texels in the fit's chunks (AUTO_CHUNK_PAIRS texel-LED pairs), as every
     other pass runs: paper stock at 1024^2 restarted so many texels that one Levenberg-Marquardt over all of them
-    asked an H100 for 26 GB more than it had (2026-11-26). The chunks restart the same texels to the same numbers."""
+    asked for more memory than a GPU has. The chunks restart the same texels to the same numbers."""
     truth, (m, lines, w), _ = fitted
-    prob = fitting._problem(mini, truth["position"], m, lines, w, GRID, FitConfig(iterations=3), None)
+    prob = problem._problem(mini, truth["position"], m, lines, w, GRID, FitConfig(iterations=3), None)
     rng = np.random.default_rng(3)  # scattered numbers: many texels find a neighbour's better and restart
-    q = torch.as_tensor(rng.normal(0.0, 0.5, (prob.n, fitting.GEOMETRY_SIZE)), dtype=prob.pos.dtype)
-    sizes, lm = [], fitting._levenberg_marquardt
+    q = torch.as_tensor(rng.normal(0.0, 0.5, (prob.n, GEOMETRY_SIZE)), dtype=prob.pos.dtype)
+    sizes, lm = [], solver._levenberg_marquardt
 
     def spy(part, q0, history):
         sizes.append(part.n)
         return lm(part, q0, history)
 
-    monkeypatch.setattr(fitting, "_levenberg_marquardt", spy)
-    whole, moved, _ = fitting._propagate(prob, q.clone(), GRID)
+    monkeypatch.setattr(solver, "_levenberg_marquardt", spy)
+    whole, moved, _ = solver._propagate(prob, q.clone(), GRID)
     assert sizes == [moved] and moved >= 3
-    monkeypatch.setattr(fitting, "AUTO_CHUNK_PAIRS", 2 * prob.leds)
+    monkeypatch.setattr(problem, "AUTO_CHUNK_PAIRS", 2 * prob.leds)
     sizes.clear()
-    chunked, moved_chunked, _ = fitting._propagate(prob, q.clone(), GRID)
+    chunked, moved_chunked, _ = solver._propagate(prob, q.clone(), GRID)
     assert moved_chunked == moved and max(sizes) == 2 and sum(sizes) == moved
     # float32 products of other sizes round differently (measured: 9e-6 at most); a texel written back to the wrong
     # place would be off by the numbers' own scale, ~0.5
@@ -472,29 +473,29 @@ def test_a_later_propagation_round_tries_only_what_changed_and_decides_as_a_whol
     truth, (m, lines, w), res = fitted
     R, C = 6, 6
     tile = np.arange(R * C) % len(m)
-    prob = fitting._problem(mini, truth["position"][tile], m[tile], lines[tile], w, (R, C), FitConfig(iterations=3),
+    prob = problem._problem(mini, truth["position"][tile], m[tile], lines[tile], w, (R, C), FitConfig(iterations=3),
                             None)
     n, t = (torch.as_tensor(getattr(res, k)[tile], dtype=prob.pos.dtype) for k in ("normal", "tangent"))
     N, X, Y = prob.frame
-    t0 = fitting._base_tangent(n, prob.frame)
+    t0 = geometry._base_tangent(n, prob.frame)
     theta = torch.atan2((torch.linalg.cross(n, t0, dim=-1) * t).sum(-1), (t0 * t).sum(-1))
     q = torch.stack([(n @ X) / (n @ N), (n @ Y) / (n @ N), theta,
                      *(torch.log(torch.as_tensor(getattr(res, k)[tile], dtype=prob.pos.dtype))
                        for k in ("alpha_x", "alpha_y"))], 1)
     q[[7, 20, 33]] = torch.as_tensor(np.random.default_rng(4).normal(0.0, 0.5, (3, 5)), dtype=q.dtype)
-    q1, moved1, changed = fitting._propagate(prob, q.clone(), (R, C))
+    q1, moved1, changed = solver._propagate(prob, q.clone(), (R, C))
     assert moved1 >= 1 and int(changed.sum()) == moved1
-    tried, losses = [], fitting._losses
+    tried, losses = [], solver._losses
 
     def spy(prob_, x, texels=None):
         tried.append(x.shape[0])
         return losses(prob_, x, texels)
 
-    monkeypatch.setattr(fitting, "_losses", spy)
-    whole, moved_whole, mask_whole = fitting._propagate(prob, q1.clone(), (R, C))
+    monkeypatch.setattr(solver, "_losses", spy)
+    whole, moved_whole, mask_whole = solver._propagate(prob, q1.clone(), (R, C))
     assert tried == [prob.n] * 5
     tried.clear()
-    part, moved_part, mask_part = fitting._propagate(prob, q1.clone(), (R, C), changed)
+    part, moved_part, mask_part = solver._propagate(prob, q1.clone(), (R, C), changed)
     grid = changed.reshape(R, C)
     near = grid.clone()
     near[1:] |= grid[:-1]

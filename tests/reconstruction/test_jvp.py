@@ -1,5 +1,5 @@
 """Forward-mode derivatives of the fit's lumitexel bases (twin.optics.jvp) and the analytic Jacobian of the GGX
-fit built on them (reconstruction.stages.fitting._analytic_jacobian), against independent oracles in float64:
+fit built on them (reconstruction.stages.fitting.jacobian._analytic_jacobian), against independent oracles in float64:
 
 * the kernel's derivatives against central differences of twin.lumitexels itself (the forward model, not the
   kernel), along random directions that move the normal, the tangent and both roughnesses at once;
@@ -20,12 +20,15 @@ import pytest
 import torch
 
 import twin
-from reconstruction.stages import fitting as F
+from reconstruction.stages.fitting import FitConfig
+from reconstruction.stages.fitting.config import GEOMETRY_SIZE
+from reconstruction.stages.fitting.geometry import _from_tensor, _log_geometry, _to_tensor
+from reconstruction.stages.fitting.jacobian import _analytic_jacobian, _normal_equations, _tensor_system
+from reconstruction.stages.fitting.model import _grey, _loss, _photo_bases, _projected, _residuals
+from reconstruction.stages.fitting.problem import _problem
 from reconstruction.network.data import LUMITEXEL_SCALE
 from twin.capture.pattern_sets import linear_lights
 from twin.optics.jvp import basis_jvp
-
-DEVICES = ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else [])
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +51,7 @@ def _points(rig, P, seed):
     return g, pos, n, t, ax, ay
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.slow
 def test_basis_derivatives_match_central_differences_of_the_forward_model(upper, device):
     """64 points with narrow to rough, anisotropic lobes, each moved along its own random direction of normal,
     tangent and log roughness: the bases are twin.lumitexels' channels 0 and 1 for rho_d = (1, 0, 0), rho_s =
@@ -115,8 +118,8 @@ def _problem64(mini, keep, loss, seed=1, P=40, device="cpu"):
     def noise(x):
         return x * (1 + 0.05 * g.normal(size=x.shape)).clip(0.5)
 
-    prob = F._problem(mini, pos, noise(m), noise(lines), W[:, keep], None, F.FitConfig(loss=loss, device=device),
-                      secondary=(noise(sec), W[:16, keep]))
+    prob = _problem(mini, pos, noise(m), noise(lines), W[:, keep], None, FitConfig(loss=loss, device=device),
+                    secondary=(noise(sec), W[:16, keep]))
     cast = {f.name: getattr(prob, f.name).double() for f in fields(prob) if torch.is_tensor(getattr(prob, f.name))}
     cast["photos"] = tuple(replace(p, **{k: getattr(p, k).double() for k in ("M", "M_f", "M_w", "W")})
                            for p in prob.photos)
@@ -133,25 +136,24 @@ def _rel(J, ref):
 
 
 def _central(prob, q, to_numbers=lambda x: x, h=1e-5):
-    e = torch.eye(F.GEOMETRY_SIZE, dtype=q.dtype, device=q.device) * h
-    return torch.stack([(F._residuals(prob, to_numbers(q + e[j])) - F._residuals(prob, to_numbers(q - e[j])))
-                        / (2 * h) for j in range(F.GEOMETRY_SIZE)], 1)
+    e = torch.eye(GEOMETRY_SIZE, dtype=q.dtype, device=q.device) * h
+    return torch.stack([(_residuals(prob, to_numbers(q + e[j])) - _residuals(prob, to_numbers(q - e[j])))
+                        / (2 * h) for j in range(GEOMETRY_SIZE)], 1)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("loss", ["log1p", "mse"])
 def test_fit_jacobian_matches_central_differences(mini, upper, loss, device):
     """The whole residual vector's Jacobian (variable projection: the albedos re-solved with the geometry,
     including those clipped to their box; the secondary view's own albedos; the loss's transform)."""
     prob, q = _problem64(mini, upper[1], loss, device=device)
-    J = F._analytic_jacobian(prob, q)
+    J = _analytic_jacobian(prob, q)
     ref = _central(prob, q)
-    assert J.shape == ref.shape == (q.shape[0], F.GEOMETRY_SIZE, F._residuals(prob, q).shape[1])
+    assert J.shape == ref.shape == (q.shape[0], GEOMETRY_SIZE, _residuals(prob, q).shape[1])
     rel = _rel(J, ref)
     assert float(rel.max()) < 1e-5, rel.max()
-    geom = F._log_geometry(q, prob.frame)
-    val = F._grey(prob, geom)
-    a, b, _ = F._projected(prob, val, F._photo_bases(prob, geom, val))
+    geom = _log_geometry(q, prob.frame)
+    val = _grey(prob, geom)
+    a, b, _ = _projected(prob, val, _photo_bases(prob, geom, val))
     assert bool(((a == 0) | (a == 1) | (b == 0)).any()) and bool(((a > 0) & (a < 1)).any())  # both kinds seen
 
 
@@ -162,22 +164,20 @@ def _system_error(A, g, J, r):
             (g - g_ref).norm(dim=1) / g_ref.norm(dim=1).clamp_min(1e-300))
 
 
-@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("loss", ["log1p", "mse"])
 def test_normal_equations_are_those_of_the_stored_jacobian(mini, upper, loss, device):
     """The fit's Gauss-Newton system, summed over the lumitexels' rows in one Warp launch that never stores them
-    (reconstruction.stages.fit_sums), against J J^T and J r of the stored analytic Jacobian (itself checked against
-    central differences above): float64, within 1e-12 (sums in another order)."""
+    (reconstruction.stages.fitting.sums), against J J^T and J r of the stored analytic Jacobian (itself checked
+    against central differences above): float64, within 1e-12 (sums in another order)."""
     prob, q = _problem64(mini, upper[1], loss, device=device)
-    A, g, loss_q = F._normal_equations(prob, q)
-    r = F._residuals(prob, q)
-    eA, eg = _system_error(A, g, F._analytic_jacobian(prob, q), r)
+    A, g, loss_q = _normal_equations(prob, q)
+    r = _residuals(prob, q)
+    eA, eg = _system_error(A, g, _analytic_jacobian(prob, q), r)
     assert float(eA.max()) < 1e-12 and float(eg.max()) < 1e-12, (eA.max(), eg.max())
     assert torch.allclose(loss_q, r.square().sum(1), rtol=1e-12, atol=0)
-    assert torch.allclose(F._loss(prob, q), loss_q, rtol=1e-12, atol=0)
+    assert torch.allclose(_loss(prob, q), loss_q, rtol=1e-12, atol=0)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_tensor_system_in_the_joint_prior_s_coordinates(mini, upper, device):
     """The joint prior's coordinates [u, v, m, d cos 2 theta, d sin 2 theta] (_to_tensor): the chain rule
     through _from_tensor, and where a lobe is isotropic (d = 0, where theta is undefined) the isotropic lobe's own
@@ -185,10 +185,10 @@ def test_tensor_system_in_the_joint_prior_s_coordinates(mini, upper, device):
     a lobe's anisotropy enters through d^2 and d (cos 2 theta, sin 2 theta) only)."""
     prob, q = _problem64(mini, upper[1], "log1p", seed=2, P=12, device=device)
     q[:3, 4] = q[:3, 3]  # three isotropic texels
-    x = F._to_tensor(q)
+    x = _to_tensor(q)
     assert not x[:3, 3:].any()
-    r = F._residuals(prob, F._from_tensor(x))
-    A, g, loss = F._tensor_system(prob, x)
-    eA, eg = _system_error(A, g, _central(prob, x, F._from_tensor), r)
+    r = _residuals(prob, _from_tensor(x))
+    A, g, loss = _tensor_system(prob, x)
+    eA, eg = _system_error(A, g, _central(prob, x, _from_tensor), r)
     assert float(eA.max()) < 1e-5 and float(eg.max()) < 1e-5, (eA, eg)
     assert torch.allclose(loss, r.square().sum(1), rtol=1e-12, atol=0)

@@ -442,6 +442,7 @@ def _train_swap(swap: bool, steps: int = 600):
     return rel, scale
 
 
+@pytest.mark.slow
 def test_albedo_swap_disentangles():
     """Trained with the 4-way loss (600 Adam steps, 32 pairs each), decode(albedo_b, shape_a) is
     albedo_b / albedo_a x decode(albedo_a, shape_a) on held-out pairs: median relative L2 error <= 0.3 and

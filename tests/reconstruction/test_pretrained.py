@@ -51,7 +51,7 @@ def test_shipped_patterns_are_the_capture_default(rig_name):
 
 
 def test_shipped_paper_model_scores_on_the_cpu_as_recorded():
-    """Issue #13: the compact paper-rig network ships within 16 MiB and, re-evaluated on the CPU on the first
+    """The compact paper-rig network ships within 16 MiB and, re-evaluated on the CPU on the first
     texels of its seeded held-out set, gives the per-texel Eq. 3 values recorded on the GPU (float32 on two
     devices: rtol 1e-3); it is far below the measurement-blind predictor."""
     import torch

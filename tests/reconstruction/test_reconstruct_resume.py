@@ -22,7 +22,7 @@ from reconstruction.pipeline import ReconstructConfig, reconstruct
 
 CONFIG = ReconstructConfig(resolution=12)
 # every run here on one torch thread, the CLI's processes too, since their bytes are compared with run A's: on CI's
-# two cores shared with other test processes, torch's default threads made this module's runs up to 10x slower
+# two cores shared with other test processes, torch's default threads made this module's runs many times slower
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 ONE_THREAD = {"OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 # the CLI, with the fit made to wait (so a kill lands in it, after fine-tuning was kept)
@@ -177,7 +177,7 @@ def test_fine_tuning_on_the_learned_photos_too(validate_dir, run_a, tmp_path, mo
         sim = simulate_lines(model, folder.latent_passes()["pass3"], meas.learned_weights)
         return float(np.square(np.sqrt(sim + 1e-6) - np.sqrt(np.maximum(meas.learned_photos[:, 0], 0) + 1e-6)).sum())
 
-    assert misfit(both) < 0.8 * misfit(lines)  # 101 against 143 (2026-11-27)
+    assert misfit(both) < 0.8 * misfit(lines)  # measured: 101 against 143
     with pytest.raises(ValueError, match="finetune_photos must be one of"):
         ReconstructConfig(finetune_photos="learned")
 

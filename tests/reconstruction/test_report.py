@@ -232,7 +232,7 @@ def test_write_report(tmp_path, ramps):
     photo = _image(24, 28)
     metrics = {"maps": maps, "render": {"latent": image_scores(photo, photo * 1.05), "nan": math.nan,
                                         "perfect": image_scores(photo, photo)}}
-    rows = check(metrics, [Threshold("maps.normal_deg.median", "<=", 1.0, "issue #6 goal"),
+    rows = check(metrics, [Threshold("maps.normal_deg.median", "<=", 1.0, "goal"),
                            Threshold("render.latent.ssim", ">=", 0.9, "ours"),
                            Threshold("render.nan", "<=", 1.0, "NaN must fail")])
     assert [r["passed"] for r in rows] == [False, True, False]

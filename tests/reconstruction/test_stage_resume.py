@@ -1,6 +1,6 @@
 """Killed fine-tuning and a killed fit resume (the checkpoints of reconstruction.stages.finetune.finetune and
-reconstruction.stages.fitting._fit_direct): stopped after any of their saves (a batch of a pass; a chunk, a propagation
-round, a step of the joint prior) and run again on the state saved, through the stage folder's files
+reconstruction.stages.fitting.direct._fit_direct): stopped after any of their saves (a batch of a pass; a chunk, a
+propagation round, a step of the joint prior) and run again on the state saved, through the stage folder's files
 (reconstruction/output.py, reconstruction.pipeline._Checkpoint), they end with the same numbers, to the bit, as a
 run that was never stopped. A tampered state is not used; a state of another problem is refused in one line.
 Fine-tuning's test is in tests/test_finetune.py (its fixtures), with the checkpoint defined here."""
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import reconstruction.stages.fitting as fitting
+from reconstruction.stages.fitting import direct
 from reconstruction.stages.fitting import FitConfig, fit_ggx
 from reconstruction.output import FIT_STATE, ReconstructionFolder
 from reconstruction.pipeline import _Checkpoint
@@ -64,8 +64,9 @@ def _same(a, b):
         "propagation_restarts"]
 
 
+@pytest.mark.slow
 def test_a_killed_fit_resumes_to_the_same_numbers(mini, problem, tmp_path, monkeypatch):
-    monkeypatch.setattr(fitting, "CHECKPOINT_SECONDS", 0.0)  # a save after every chunk
+    monkeypatch.setattr(direct, "CHECKPOINT_SECONDS", 0.0)  # a save after every chunk
     whole = _fit(mini, problem)
     record = _Stopping(tmp_path / "all")
     _same(_fit(mini, problem, record), whole)  # saving changes nothing
@@ -86,7 +87,7 @@ def test_a_killed_fit_resumes_to_the_same_numbers(mini, problem, tmp_path, monke
 
 
 def test_a_tampered_or_foreign_state(mini, problem, tmp_path, monkeypatch):
-    monkeypatch.setattr(fitting, "CHECKPOINT_SECONDS", 0.0)
+    monkeypatch.setattr(direct, "CHECKPOINT_SECONDS", 0.0)
     folder = tmp_path / "s"
     with pytest.raises(_Killed):
         _fit(mini, problem, _Stopping(folder, 2))

@@ -168,7 +168,7 @@ def test_time_limit_chunks_resume_to_the_uninterrupted_run(run200, tmp_path, cap
 
 
 def test_checkpoint_shards_stay_small_and_move_between_folders(run200, tmp_path, monkeypatch, capsys):
-    """Issue #13 item 2: a checkpoint in files of at most CHECKPOINT_SHARD_BYTES of tensors each (16 MiB for a lent
+    """A checkpoint in files of at most CHECKPOINT_SHARD_BYTES of tensors each (16 MiB for a lent
     machine's files), a tensor larger than that cut into pieces; a run moved to another folder (another machine)
     resumes from its shards to the uninterrupted run bit for bit; a changed shard is refused in one line."""
     import shutil

@@ -17,9 +17,6 @@ import warp as wp
 import twin
 from twin.optics.inputs import OPENSVBRDF_PHOTO_SCALE, OPENSVBRDF_RENDER_SCALE
 
-wp.init()
-DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
-
 
 @pytest.fixture(scope="module")
 def opensvbrdf_rig(reference_dir):
@@ -50,7 +47,7 @@ CASES = {
     "D": ((0, 0, -122), (0, 0, 1), (1, 0, 0), (0.3, 0.05), (0, 1), (0.0671452, 4.31949e-4, 2079, 1.06856e-8, 1.03329e-8, 4.12332e-8)),
     "E": ((50, -30, -122), *_case_e_frame(), (0.2, 0.15), (0.5, 2), (1.48237, 6.11136e-4, 5312, 0.0, 2.59726e-5, 2.78982e-5)),
 }
-# The issue asks for <= 1e-5 relative. Our float32 kernel differs from the authors' float32 renderer by
+# The goal is <= 1e-5 relative. Our float32 kernel differs from the authors' float32 renderer by
 # rounding only (~1e-6, measured <= 3.4e-6 including the table's own 6-digit rounding of <= 5e-6).
 REF_RTOL = 1e-5
 
@@ -61,7 +58,6 @@ def _single(rig, case, device, **kw):
     return m[0].astype(np.float64)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_reference_vectors(opensvbrdf_rig, case, device):
     m = _single(opensvbrdf_rig, case, device, convention="opensvbrdf")
@@ -74,7 +70,6 @@ def test_reference_vectors(opensvbrdf_rig, case, device):
         assert got == pytest.approx(want, rel=REF_RTOL, abs=1e-30)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_reference_details(opensvbrdf_rig, device):
     """Case A per-board sums (4 digits given), photo units (4 digits), case E support (exact count)."""
     a = _single(opensvbrdf_rig, "A", device, convention="opensvbrdf")[:, 0]
@@ -88,7 +83,6 @@ def test_reference_details(opensvbrdf_rig, device):
     assert int((e > 0).sum()) == 11653
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_lambertian_plate_closed_form(mini, device):
     """A Lambertian plate under each LED: m = I * (rho_d / pi) * cos(theta_i) * cos(theta_l) / r^2 with r
     in metres (physical convention), evaluated here in float64. Points well inside the frame so no
@@ -115,7 +109,6 @@ def test_lambertian_plate_closed_form(mini, device):
         assert np.all(m[:, ~upper] == 0)  # opaque sample (transparency 0): no light from below
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_bottom_leds_transmission_closed_form(mini, device):
     """Bottom LEDs through the acrylic: m = I * T_acrylic * beta / pi * cos(theta_l) * cos(theta_plane) / r^2,
     independent of the shading normal and the BRDF (diffuse transmission)."""
@@ -138,7 +131,6 @@ def test_bottom_leds_transmission_closed_form(mini, device):
 
 
 @pytest.mark.parametrize("profile", ["cosine-power", "polynomial"])
-@pytest.mark.parametrize("device", DEVICES)
 def test_led_profiles_closed_form(mini, profile, device):
     """Psi: cos^p (p = 0 is an isotropic point source, p = 2.5 a narrower beam) and the two-cubic
     polynomial form, against float64 numpy. Lambertian plate at the centre."""
@@ -191,7 +183,6 @@ def _frame_blocks(rig, x, led):
     return hit
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_visibility_against_holder_frame(mini, device):
     """V(l, p) from Warp's BVH ray queries equals a float64 ray-box test of the frame; points near the
     frame's inner edge lose their lowest LEDs on that side, the centre loses none."""
@@ -213,7 +204,6 @@ def blocked_count(free, lit, p):
     return int((free[p] & ~lit[p]).sum())
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_finite_over_parameter_range(mini, device):
     """No NaN/Inf for alpha in [0.006, 1] (both axes), normals up to grazing, rho_s up to 10."""
     al = np.geomspace(0.006, 1.0, 6)
@@ -236,7 +226,6 @@ def _points(P, seed=0):
     return random_points(P, seed=seed)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_measurements_fused_equals_materialised(mini, device):
     """Fused (never stores m) vs materialise-then-project vs float64 numpy einsum of the lumitexels.
     float32 sums over 460 LEDs: <= 1e-5 of the largest measurement."""
@@ -259,7 +248,6 @@ def test_measurements_fused_equals_materialised(mini, device):
         twin.measurements(mini, **pts, patterns=w, device=device, fast=True)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_rows_kernels_match_the_pointwise_kernel(device):
     """lumitexel_rows_kernel and its fast-math twin (thread (p, j) takes LEDs j, j + 512, ...) against
     lumitexel_kernel (a thread per point and LED), on 1,100 LEDs: every LED of every point, the last stride
@@ -285,7 +273,6 @@ def test_rows_kernels_match_the_pointwise_kernel(device):
         assert np.all(np.abs(got - want) <= LUMITEXEL_RTOL * np.abs(want) + LUMITEXEL_ATOL * np.abs(want).max()), kernel.key
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_project_block_diagonal(device):
     """forward.project (one GEMM against the block-diagonal matrix of the channels' patterns) against float64
     einsum: float32 within 1e-5 of the largest value; tensor_cores=True (TF32 on CUDA) within
@@ -308,7 +295,6 @@ def test_project_block_diagonal(device):
         project(m, w[:, :-1])
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_deterministic(mini, device):
     pts = _points(50)
     w = np.random.default_rng(2).uniform(0, 1, (8, mini.num_leds, 3))

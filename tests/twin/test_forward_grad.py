@@ -38,6 +38,7 @@ def _inputs(P=2, seed=0):
     return pos, n, t, rd, rs, ax, ay, beta
 
 
+@pytest.mark.slow
 def test_lumitexel_gradcheck_float64(rig):
     pos, n, t, rd, rs, ax, ay, beta = _inputs()
     leaves = [x.clone().requires_grad_(True) for x in (n, t, rd, rs, ax, ay, beta)]
@@ -51,6 +52,7 @@ def test_lumitexel_gradcheck_float64(rig):
     assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-5, rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_measurement_gradcheck_float64_patterns(rig):
     """Gradients reach the pattern weights and the material through the projection kernel."""
     pos, n, t, rd, rs, ax, ay, beta = _inputs()

@@ -1,4 +1,4 @@
-"""The material suite (twin.materials.suite, issue #14): one procedural sample per OpenSVBRDF category plus
+"""The material suite (twin.materials.suite, docs/accuracy.md): one procedural sample per OpenSVBRDF category plus
 `quadrants`. Checked here: registration, valid maps, determinism and seed dependence, the ranges the suite
 must cover together, each category's character on its default AND its held-back compositions, and
 `hemicube samples list` (the OpenSVBRDF folder round trip of every built-in sample is in test_samples.py).
@@ -53,8 +53,8 @@ def test_valid_maps_in_the_export_convention(suite):
         assert np.all(m.transparency == 0), name
 
 
-def test_the_suite_covers_the_issues_ranges(suite):
-    """Issue #14: together α 0.01-0.6, αx/αy up to 8, ρd 0.01-0.9, ρs up to the reference's range (paper's
+def test_the_suite_covers_the_required_ranges(suite):
+    """Together α 0.01-0.6, αx/αy up to 8, ρd 0.01-0.9, ρs up to the reference's range (paper's
     ps_range is 20; the suite reaches > 15), normal tilts up to 25°, at the default seed."""
     r = [parameter_ranges(suite[(name, 0)]) for name in SUITE_SAMPLES]
     lo = lambda k: min(x[k][0] for x in r)  # noqa: E731

@@ -1,4 +1,4 @@
-"""`hemicube capture-many` and `hemicube reconstruct-many` on a real local Ray (issue #18): tiny mini-rig
+"""`hemicube capture-many` and `hemicube reconstruct-many` on a real local Ray (docs/scale-out.md): tiny mini-rig
 captures made by capture-many, one broken capture folder, reconstruct-many over all three. The broken one is
 reported with its error after its bounded retries and does not stop the batch; finished work is skipped on a
 second run; a reconstruction whose files were changed afterwards is redone; scores come with the captures'
@@ -170,8 +170,8 @@ def test_run_batch_kills_an_attempt_that_runs_over_its_timeout(tmp_path):
     """--timeout: the hung job's worker is killed after each attempt's timeout and the job is reported failed
     after 1 + retries attempts; the job beside it, queued behind it on a one-slot Ray, still runs. An attempt's
     time counts from its submission, so it includes the start of a new worker (the killed one's replacement) and
-    its imports: 1-9 s measured on the 2-core machine (torch alone 3-5 s), so 20 s. With 4 s the quick job timed
-    out too, on a clean CI run as well."""
+    its imports: up to ~10 s on two shared cores (torch's import alone a few), so 20 s; a timeout of a few
+    seconds times the quick job out too."""
     from ray import cloudpickle
 
     from twin.batch import BatchOptions, Job, run_batch

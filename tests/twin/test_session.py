@@ -25,6 +25,7 @@ def capture_copy(validate_dir, tmp_path):
     return out
 
 
+@pytest.mark.slow
 def test_reader_gives_what_the_capture_wrote(validate_dir, mini):
     s = CaptureSession.open(validate_dir / "capture")
     assert s.verify() == [] and s.rig_digest == mini.digest() and s.sample == "ramps"
@@ -39,6 +40,7 @@ def test_reader_gives_what_the_capture_wrote(validate_dir, mini):
     assert s.ground_truth_maps().resolution == 128 and s.pixel_texel(0).shape[-1] == 2
 
 
+@pytest.mark.slow
 def test_rewritten_photo_stops_reconstruct_naming_it(capture_copy, tmp_path, capsys):
     """A valid EXR with other values in place of a photo: `hemicube reconstruct` exits non-zero, naming it."""
     from twin.materials.exr import read_rgb_exr, write_rgb_exr
@@ -124,6 +126,7 @@ def test_open_refuses_what_is_not_a_capture(tmp_path):
     assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.slow
 def test_raw_compare_finds_no_difference_in_a_capture_against_itself(validate_dir, tmp_path):
     """twin.capture.raw_compare, the cross-machine comparison (docs/performance.md): a capture against itself
     gives no differing row (a tampered frame cannot be read at all: its checksum fails)."""

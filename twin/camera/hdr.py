@@ -14,7 +14,7 @@ Per frame k (exposure t_k, electrons per DN g at the common `gain_db`), at every
              frames, sd_k^2 = mu_k (1 + k t_k / sum k t) + read_noise^2 + g^2 / 12 (this frame's noise and the
              prediction's), threshold = black + (1 - margin) * e_sat / g, e_sat = min(full well, ADC range)
 
-Why the prediction (ours, issue #14): excluding a frame only when its OWN reading crosses the threshold
+Why the prediction (ours, not the paper's): excluding a frame only when its OWN reading crosses the threshold
 truncates that frame's noise where its mean lies within ~2 sigma of the threshold and biased those sites
 low by up to 0.8 sigma x its weight share (-0.4% measured, tests/test_hdr.py). In a capture that band is
 where bright texels of a photo sit in its middle frame, photo by photo, so the bias varied with the light:

@@ -1,6 +1,6 @@
 """Camera image formation: what each camera pixel sees, and its radiance under lighting patterns.
 
-The path of a pixel (issue "virtual capture", §2):
+The path of a pixel:
   1. rays through K and the OpenCV distortion (undistortion by 20 fixed-point steps, as
      `Camera.undistort`); S x S stratified sub-pixel rays per pixel, S chosen from the ratio of the pixel's
      footprint on the sample plane to the texel size, so that texels are filtered over the pixel footprint
@@ -31,7 +31,7 @@ function: the built-in rigs' cosine profile with exponent 1). The projection sum
 sums differ by at most ~L 2^-53 relative, so their float32 rounding differs only when a sum lies that close
 to a rounding boundary (at most ~1e-5 of the values, typically far fewer), and a 1-ulp radiance difference
 moves a raw value in ~6e-5 of those cases (twin.camera.sensor). Measured: the mini captures of
-docs/performance.md are byte-identical on the CPU and an H100.
+docs/performance.md are byte-identical on the CPU and a CUDA GPU.
 
 Only what a photo needs is rendered: the patterns are grouped by the LED classes they light (upper,
 bottom), and each group evaluates only the LEDs its patterns light (the bottom-lit photos: the bottom LEDs
@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 # forward only (nothing here is differentiated): no adjoint code, about half the compile time of a cold kernel
-# cache (issue #12: compilation counts in the end-to-end run)
+# cache (compilation counts in the end-to-end run; docs/performance.md)
 wp.set_module_options({"fast_math": False, "fuse_fp": False, "enable_backward": False})
 
 # Materials of the rig's own surfaces (ASSUMED; diffuse albedo, specular albedo, isotropic alpha).

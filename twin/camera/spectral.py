@@ -1,4 +1,4 @@
-"""Colour from spectra (issue #16): the LEDs' emission spectra, the cameras' colour-filter sensitivities and a
+"""Colour from spectra (docs/calibration.md): the LEDs' emission spectra, the cameras' colour-filter sensitivities and a
 surface's spectral reflectance, from which follow a camera's 3x3 crosstalk (`Camera.sensor.crosstalk`) and
 what it records of a coloured target such as a ColorChecker.
 

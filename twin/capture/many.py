@@ -1,4 +1,4 @@
-"""`hemicube capture-many SAMPLES.toml -o OUT` (issue #18): simulated database construction, one Ray task per
+"""`hemicube capture-many SAMPLES.toml -o OUT` (docs/scale-out.md): simulated database construction, one Ray task per
 sample (twin.batch: local by default, a cluster with --address; GPU tasks on CUDA), skipping finished captures,
 retrying failures a bounded number of times.
 

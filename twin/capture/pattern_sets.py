@@ -17,7 +17,7 @@ uniform
 bottom
     Every bottom LED at full drive: the transparency photo (reference §6.3, image 128).
 
-Fixed signed families, baselines for a pattern designer (issue #17), each captured as (+, -) pairs through
+Fixed signed families, baselines for a pattern designer (docs/designer.md), each captured as (+, -) pairs through
 `signed_pairs` over the upper LEDs (bottom LEDs 0, the three channels equal), frames "<family>_{k:02d}+/-":
 hadamard
     Rows 1..count of the Sylvester Hadamard matrix of order n = the next power of two >= the number of

@@ -6,7 +6,7 @@
     k 129      uniform light (two-view alignment)           cameras 0 and 1
     k 130      all bottom LEDs, empty board (reference for transparency: transparency = k128 / k130)
 
-With another number of learned patterns K (a capture design, issue #17: F = 2K learned frames), the same
+With another number of learned patterns K (a capture design, docs/designer.md: F = 2K learned frames), the same
 order shifts: learned 0..F-1, lines F..F+63, then bottom, uniform, empty bottom (`PlanIndices`); a capture
 records which pattern each photo showed, so `indices_of(session)` reads its layout back. K = 32 is the
 reference's layout (`REFERENCE_INDICES`).
@@ -33,12 +33,12 @@ BRACKET = 3  # exposures per photo
 BRACKET_RATIO = 8.0
 # frames a photo may take in all: frame_id gives each (photo, camera) 16 streams of sensor noise,
 MAX_FRAMES_PER_PHOTO = 16  # and the HDR merge takes 16 frames at most (twin.camera.hdr.MAX_FRAMES)
-# Four frames an exposure by default (issue #14): a weak, rough lobe (fabric's, paper stock's: 0.5-2% of a photo) is
+# Four frames an exposure by default (ours): a weak, rough lobe (fabric's, paper stock's: 0.5-2% of a photo) is
 # decided by the photos' temporal noise, and averaging four frames halves it; measured on the whole material suite,
 # every alpha, rho_d and normal median improved and fabric's compositions met the goals (docs/accuracy.md). The real
 # device takes each exposure four times, the shortest eight (docs/performance.md has the capture times).
 DEFAULT_FRAMES = 4
-# The shortest exposure is taken twice as often (issue #14): it alone measures the brightest part of a photo, which
+# The shortest exposure is taken twice as often (ours): it alone measures the brightest part of a photo, which
 # saturates the longer ones, so that part had a third of the photo's frames; on a bright stock (paper's, rho_d ~0.85)
 # that is where a weak lobe is, measured by 20,000 e- a photosite (0.6-0.9% shot noise; docs/accuracy.md). The extra
 # frames are the bracket's shortest: 4 more frames add 4 / (4 x 73) of a photo's exposure time (ratio 8: 1 + 8 + 64).
@@ -183,7 +183,7 @@ def frames_per_photo(frames: int) -> int:
 
 def bracket_frames(exposures: list[float], frames: int) -> list[float]:
     """The exposures a photo's raw frames take, the ascending `exposures` each taken its `exposure_frames` times in a
-    row (frame averaging, issue #14: the photos' noise is what limits a weak lobe; docs/accuracy.md)."""
+    row (frame averaging: the photos' noise is what limits a weak lobe; docs/accuracy.md)."""
     return [t for t, n in zip(exposures, exposure_frames(frames, len(exposures))) for _ in range(n)]
 
 

@@ -141,7 +141,7 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     twice as often (the HDR merge averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices`
     are the hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
     (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
-    calibration, as a real device's capture records the calibrated rig (issue #16's loop closing); it must be
+    calibration, as a real device's capture records the calibrated rig (docs/calibration.md); it must be
     `rig`'s device (Rig.layout_digest): differ only in how the cameras record light, in the cameras' lenses and
     poses and in the LEDs' positions, normals, profiles and intensities. Everything that can
     be checked, the devices included, is checked before the folder is made; a folder this call made is removed

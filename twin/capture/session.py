@@ -358,16 +358,15 @@ class CaptureSession:
         i, c = photo.index, photo.camera_index
         done = {}
         # not fsynced (twin.atomic, durable=False): a resumed capture verifies a photo's files before it counts as
-        # taken (photo_done), and syncing the paper rig's 196 photos (20 GB) took a 1024^2 capture on an H100 machine
-        # from 35.1 to 41.5 s (ours, issue #12; docs/performance.md); the manifest that lists them is fsynced
+        # taken (photo_done), and syncing the paper rig's 196 photos (20 GB) adds about a sixth to a 1024^2 capture's
+        # time (docs/performance.md); the manifest that lists them is fsynced
         for j, raw in enumerate(raws):
             data = pack_bayer_rg12p(raw)
             write_bytes_atomic(self.dir / _raw_file(i, c, j), data, durable=False)
             done[_raw_file(i, c, j)] = hashlib.sha256(data).hexdigest()
         path = self.dir / _photo_file(i, c)
-        # uncompressed: zip saves nothing on a noisy float32 photo (73.2 against 73.7 MB at 2664 x 2304) and cost 5x
-        # the write time and 2x the read time (1.67 against 0.32 s, 0.39 against 0.20 s on one core;
-        # docs/performance.md, issue #12's capture with files written)
+        # uncompressed: zip saves nothing on a noisy float32 photo (73.2 against 73.7 MB at 2664 x 2304) and costs
+        # several times the write time and twice the read time (docs/performance.md, the capture with files written)
         write_rgb_exr(path, radiance, compression="none", durable=False)
         done[_photo_file(i, c)] = file_sha256(path)
         with self._mutex:

@@ -1,1 +1,1 @@
-"""Figures of merit for designing lighting patterns (issue #17): measurement noise and multiplexing gain."""
+"""Figures of merit for designing lighting patterns (docs/designer.md): measurement noise and multiplexing gain."""

@@ -1,4 +1,4 @@
-"""What a capture design costs the device (issue #17 item 2): pattern upload, acquisition time, LED duty.
+"""What a capture design costs the device (docs/designer.md): pattern upload, acquisition time, LED duty.
 
 Upload (`upload_cost`): each frame as the host sends it (twin.capture.backends.led_host): the WRITE chunks of the
 bytes that differ from an empty (zeroed) slot, a COMMIT and, per photo, a SHOW, each led by the host's

@@ -1,4 +1,4 @@
-"""A capture design as a file (issue #17 item 1): what a pattern designer varies, in one TOML file.
+"""A capture design as a file (docs/designer.md): what a pattern designer varies, in one TOML file.
 
     format = "hemicube-design"
     version = 1
@@ -57,7 +57,7 @@ FORMAT_VERSION = 1
 FAMILIES = ("learned", "hadamard", "gradients", "lines", "olat", "file")
 DISTRIBUTIONS = ("uniform", "suite", "maps:DIR")
 # the material suite's compositions (seeds) a "suite" distribution trains on, and those it is tested on: held
-# back from training, as the suite's validation keeps its own held-back seeds (issue #14)
+# back from training, as the suite's validation keeps its own held-back seeds (docs/accuracy.md)
 SUITE_TRAIN_SEEDS = (0, 1, 2)
 SUITE_TEST_SEEDS = (9101, 9102)
 

@@ -1,4 +1,4 @@
-"""Noise figures of lighting patterns (issue #17, item 2): how precisely a photo pair measures a pattern's
+"""Noise figures of lighting patterns (docs/designer.md): how precisely a photo pair measures a pattern's
 functional, and what multiplexing gains over one-LED-at-a-time (OLAT) photos.
 
 Multiplexing gain (sources)

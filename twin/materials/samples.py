@@ -393,7 +393,7 @@ def read_maps(directory: str | os.PathLike, size_mm: float | None = None) -> SVB
 # --- built-in samples ------------------------------------------------------------------------------
 
 BUILTIN_SAMPLES = ("ramps", "brushed_metal", "satin_weave")
-SUITE = SUITE_SAMPLES  # `hemicube validate --suite`: the samples every threshold must hold on (issue #14)
+SUITE = SUITE_SAMPLES  # `hemicube validate --suite`: the samples every threshold must hold on
 MIN_RESOLUTION = 16
 MAX_RESOLUTION = 8192
 
@@ -568,7 +568,7 @@ def _satin_weave(res: int, seed: int, size_mm: float) -> dict:
 
 
 _BUILDERS = {"ramps": _ramps, "brushed_metal": _brushed_metal, "satin_weave": _satin_weave}
-# the material suite (issue #14): one sample per OpenSVBRDF category and `quadrants` (twin.materials.suite)
+# the material suite (docs/accuracy.md): one sample per OpenSVBRDF category and `quadrants` (twin.materials.suite)
 _BUILDERS.update(SUITE_BUILDERS)
 BUILTIN_SAMPLES = BUILTIN_SAMPLES + SUITE_SAMPLES
 # one line per built-in sample for `hemicube samples list` (the builders' docstrings say the rest)

@@ -1,4 +1,4 @@
-"""The material suite: one procedural sample per OpenSVBRDF category, plus `quadrants` (issue #14).
+"""The material suite: one procedural sample per OpenSVBRDF category, plus `quadrants` (docs/accuracy.md).
 
     SUITE_SAMPLES                      ("satin", "wood", "paper", "metal", "leather", "ceramic", "woven",
                                         "fabric", "wallpaper", "quadrants"), registered in twin.materials.samples (its SUITE)
@@ -290,7 +290,7 @@ def _leather(res: int, seed: int, size_mm: float) -> dict:
     falling into rounded creases, tilted up to 25° there, plus slow wrinkles (≤ 4°). Colour (seeded: tan,
     brown, oxblood, black) darkens towards the creases (x 0.6) and varies smoothly pebble to pebble (±8%):
     ρd 0.02-0.39. The tops are worn glossy: ρs 0.5-1.2 on tops, half that in the creases; α 0.18 on tops to
-    0.40 in the creases (correlated with relief, as the issue's 'bumpy leather'). Finer grain, or creases
+    0.40 in the creases (correlated with relief: a 'bumpy leather'). Finer grain, or creases
     sharper than ~2 mm, would be below the 48² grid's band limit (module docstring)."""
     rng = _rng("leather", seed)
     cells = int(rng.integers(5, 7))
@@ -417,7 +417,7 @@ QUADRANT_RATIOS = (1.0, 2.0, 4.0, 8.0)
 
 
 def _quadrants(res: int, seed: int, size_mm: float) -> dict:
-    """quadrants (issue #14's unseen sample): four quadrants of anisotropy αx/αy = 1, 2, 4, 8 (seeded
+    """quadrants (the suite's unseen sample): four quadrants of anisotropy αx/αy = 1, 2, 4, 8 (seeded
     order). In each, the roughness sqrt(αx αy) ramps log-linearly 0.02 -> 0.3 along +x (αx = that · sqrt(r),
     αy = that / sqrt(r), then αx ≤ 0.6 and αy ≥ 0.01, which lowers r at the ends of the r = 8 ramp), the
     normal tilts 0 -> 20° along +y towards a seeded azimuth, and the tangent turns by 90° from a seeded

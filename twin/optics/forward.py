@@ -38,8 +38,8 @@ def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *
     torch tensors (then differentiable w.r.t. normal, tangent, rho_d, rho_s, alpha_x, alpha_y).
     output="torch" with array inputs returns a torch tensor on `device` that shares the kernel's output
     memory (zero-copy, no autograd): training data made on the device where the network trains.
-    fast=True (array inputs): the fast-math kernel (lumitexel.lumitexel_rows_kernel_fast: 1.5x faster on an H100,
-    within the float32 paths' same-work tolerance of the default)."""
+    fast=True (array inputs): the fast-math kernel (lumitexel.lumitexel_rows_kernel_fast: faster on a GPU,
+    docs/performance.md; within the float32 paths' same-work tolerance of the default)."""
     if any(_is_torch(x) for x in (position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y)):
         from twin.optics.torch_ops import lumitexels_torch
 
@@ -62,7 +62,7 @@ def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *
 # TF32 keeps 10 of float32's 23 mantissa bits: each factor of W m is off by at most 2^-10 relative (truncated;
 # 2^-11 rounded), the product by 2 x 2^-10, and float32 sums of L = 12,288 terms add at most L 2^-24 = 7.3e-4. Every
 # term is >= 0 for drives W >= 0 (m is radiance), so the sum's relative error is at most their sum, 2.7e-3.
-# Measured on an H100 against a float64 projection of the same lumitexels: 5.4e-4 at most (docs/performance.md),
+# Measured on a GPU against a float64 projection of the same lumitexels: 5.4e-4 at most (docs/performance.md),
 # against ~1% per-pixel sensor noise (docs/accuracy.md).
 TF32_PROJECTION_RTOL = 3e-3
 
@@ -70,9 +70,9 @@ TF32_PROJECTION_RTOL = 3e-3
 def project(m, w, tensor_cores: bool = False):
     """B[p, k, c] = sum_l W[k, l, c] m[p, l, c] (paper Eq. 2) for torch tensors m (P, L, 3) and w (K, L, 3), as one
     GEMM (P, 3L) x (3L, 3K) against the block-diagonal matrix of the channels' patterns: m is read in place, where a
-    batched product per channel would first copy it into channel planes (19 ms of 23 at 65,536 x 12,288 on an
-    H100). tensor_cores=True lets that GEMM use TF32 (CUDA only; relative error <= TF32_PROJECTION_RTOL of
-    sum_l |W| m): 3.9 ms instead of 19. Returns (P, K, 3)."""
+    batched product per channel would first copy it into channel planes (most of its time on a GPU,
+    docs/performance.md). tensor_cores=True lets that GEMM use TF32 (CUDA only; relative error <=
+    TF32_PROJECTION_RTOL of sum_l |W| m), several times faster. Returns (P, K, 3)."""
     import torch
 
     from twin.optics.torch_ops import tf32_products
@@ -97,8 +97,8 @@ def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y,
     or (K, L) relative drive, or a twin.capture.patterns.PatternSet. method="fused" never stores the lumitexels
     (a tiled kernel on CUDA, a loop kernel on CPU); "materialise" computes them (fast: as `lumitexels` does), then
     projects (`project`, cuBLAS, on CUDA, where tensor_cores=True allows TF32 within TF32_PROJECTION_RTOL; the
-    projection kernel on the CPU). On an H100 materialise with fast=True and tensor_cores=True is the fastest
-    path: 5 x 10^10 evaluations/s and more (docs/performance.md)."""
+    projection kernel on the CPU). On a GPU materialise with fast=True and tensor_cores=True is the fastest
+    path (docs/performance.md)."""
     if any(_is_torch(x) for x in (position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, patterns)):
         from twin.optics.torch_ops import measurements_torch
 

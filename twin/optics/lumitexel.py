@@ -141,7 +141,7 @@ def _lumitexel(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.a
                              lpos[l], lnrm[l], lu[l], lint[l], prof, l, lbot[l], o)
 
 
-LED_STRIDE = wp.constant(512)  # threads per point in lumitexel_rows_kernel (H100: 256 -> 512 is 12.7 -> 10.4 ms)
+LED_STRIDE = wp.constant(512)  # threads per point in lumitexel_rows_kernel (faster than 256; docs/performance.md)
 
 
 def _lumitexel_rows(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l: wp.array(dtype=Any),
@@ -150,8 +150,8 @@ def _lumitexel_rows(pos: wp.array(dtype=Any), frames: wp.array(dtype=Any), wo_l:
                     lpos: wp.array(dtype=Any), lnrm: wp.array(dtype=Any), lu: wp.array(dtype=Any),
                     lint: wp.array(dtype=Any), prof: wp.array2d(dtype=Any), lbot: wp.array(dtype=wp.int32),
                     o: Options, out: wp.array2d(dtype=Any)):
-    """_lumitexel with thread (p, j) evaluating LEDs j, j + LED_STRIDE, ... of point p. Why (issue #12 item 2,
-    Nsight Compute on an H100, docs/performance.md): one thread per (p, l) spent ~300 of its ~650 instructions
+    """_lumitexel with thread (p, j) evaluating LEDs j, j + LED_STRIDE, ... of point p. Why (Nsight
+    Compute, docs/performance.md): one thread per (p, l) spent ~300 of its ~650 instructions
     per evaluation on array indexing and loads, 24 floats of them the point's, the same for every LED; here
     they are loaded once per thread, and a warp's LEDs stay consecutive, so the stores stay coalesced."""
     p, j = wp.tid()
@@ -164,7 +164,7 @@ point_frames_kernel = wp.kernel(_point_frames)
 lumitexel_kernel = wp.kernel(_lumitexel)
 # Forward only: a dynamic loop has no adjoint. The fast twin is compiled with fast math: approximate division
 # and square root (<= 2 ulp) and denormals flushed, which no lumitexel of alpha >= 0.006 comes near. _lumitexel
-# compiled with fast math against lumitexel_kernel on an H100, over 65,536 random points x 12,288 LEDs: largest
+# compiled with fast math against lumitexel_kernel on a GPU, over 65,536 random points x 12,288 LEDs: largest
 # difference 7.9e-5 of |m| + 1e-6 max |m|, 99.999th percentile 9.7e-6 (docs/performance.md); the rows kernels are
 # checked against lumitexel_kernel (tests/test_forward.py) and the bench's torch baseline within the float32
 # paths' same-work tolerance (twin.bench.LUMITEXEL_RTOL), far below the sensor's ~1% noise.

@@ -1,4 +1,4 @@
-"""The wavelength grid on which the twin's colour is computed from spectra (issue #16): LED emission and surface
+"""The wavelength grid on which the twin's colour is computed from spectra: LED emission and surface
 reflectance here, camera sensitivities in twin.camera.spectral.
 
 400-700 nm in 5 nm steps: the CIE 1931 observer, the LEDs' emission (each within 3 half-widths of its peak) and

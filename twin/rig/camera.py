@@ -139,8 +139,8 @@ class Camera:
     def undistort(self, xy_d: np.ndarray, iterations: int = 20) -> np.ndarray:
         """Invert `distort` by fixed-point iteration (as cv2.undistortPoints does), in blocks of points that
         stay in the processor's cache. A point that the iteration maps to itself exactly stays there, so it
-        leaves the loop then with the bits it would end with (a 2664 x 2304 pixel grid took ~5 s with every
-        point through all 20 iterations; issue #12)."""
+        leaves the loop then with the bits it would end with (where every point through all 20 iterations made a
+        paper-rig camera's pixel grid slow; docs/performance.md)."""
         xy_d = np.asarray(xy_d, dtype=np.float64)
         xd, yd = xy_d[..., 0].ravel(), xy_d[..., 1].ravel()
         out = np.empty((xd.size, 2))
@@ -151,7 +151,7 @@ class Camera:
 
     def undistort_reference(self, xy_d: np.ndarray, iterations: int = 20) -> np.ndarray:
         """`undistort` as it was before the blocks: every point through every iteration. The oracle of
-        tests/test_camera.py and the same-run baseline of docs/bench/undistort_blocks_2026-11-27.py."""
+        tests/twin/test_camera.py."""
         xy = np.array(xy_d, dtype=np.float64)
         for _ in range(iterations):
             xy = np.stack(self._undistort_step(xy[..., 0], xy[..., 1], xy_d[..., 0], xy_d[..., 1]), axis=-1)

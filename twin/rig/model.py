@@ -242,7 +242,7 @@ class Rig:
         object.__setattr__(self, "flat_fields", MappingProxyType(maps))
         validate(self)
 
-    # --- the public API names (kept stable; later issues and external tests use them) ----------
+    # --- the public API names (kept stable; the other packages, external code and tests use them) -
     @property
     def led_positions(self) -> np.ndarray:
         return self.leds.positions

@@ -1,11 +1,11 @@
-"""A rig's "true" device for calibration studies (issue #16): the nominal rig with seeded manufacturing and
+"""A rig's "true" device for calibration studies (docs/calibration.md): the nominal rig with seeded manufacturing and
 assembly errors, so that a calibration has something to find. The truth is kept beside the calibrated result
 for scoring (`hemicube calibrate --perturb SEED`).
 
 Cameras: focal length uniform within +-1% (fx and fy alike: a lens, not the pixels), principal point N(0, 5 px)
 per axis, radial distortion k1, k2, k3 each x N(1, 5%), pose N(0, 1 mm) per axis and a rotation of N(0, 0.2 deg)
-about each axis. The issue names the focal and pose figures; the principal point and distortion spreads are
-this project's choice (a lens re-mounted on its camera).
+about each axis. The focal and pose figures are the project's requirements; the principal point and distortion
+spreads are this project's choice (a lens re-mounted on its camera).
 
 Vignetting (`perturb_vignetting`): the true light falloff of each camera is richer than the rig's radial
 model (1 + a r^2 + b r^4 + c r^6), so that a flat-field calibration has more to find than the model it fits:
@@ -16,11 +16,11 @@ model (1 + a r^2 + b r^4 + c r^6), so that a flat-field calibration has more to 
 - dust on the sensor window: 2-6 soft shadows, Gaussian, sigma U(1, 2.5)% of the width, U(1, 4)% deep.
 The rig keeps the radial part in each camera's `vignetting` and the other two as its per-pixel map
 (`Rig.flat_fields`), so that a capture with it renders the whole falloff.
-LEDs (`perturb_leds`), the upper LEDs, or with bottom=True the bottom LEDs (an independent draw): positions N(0, 3 mm) per axis (the issue's figure: a hand-assembled board's LEDs, each
+LEDs (`perturb_leds`), the upper LEDs, or with bottom=True the bottom LEDs (an independent draw): positions N(0, 3 mm) per axis (the project's figure: a hand-assembled board's LEDs, each
 placed on its own; redrawn where two would overlap); each board turned by N(0, 0.5 deg) about each axis about its centre, moving its LEDs'
 normals, plus a N(0, 1 deg) tilt of every LED (soldered crooked); the angular profile cos^p with p = the
-nominal p x U(0.8, 1.2) per board (the issue's +-20%) x N(1, 2%) per LED, so that the truth is richer than a
-profile fitted per board; RGB intensity x U(0.9, 1.1) per LED and channel (the issue's +-10%). The rig must use
+nominal p x U(0.8, 1.2) per board (the project's +-20%) x N(1, 2%) per LED, so that the truth is richer than a
+profile fitted per board; RGB intensity x U(0.9, 1.1) per LED and channel (the project's +-10%). The rig must use
 the "cosine" profile family. Colour: twin.camera.spectral.device_spectra (a device's spectra, from which its
 cameras' crosstalk follows).
 """

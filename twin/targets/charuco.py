@@ -10,8 +10,8 @@ along the columns, z = x × y; in mm. A world point on the board is X = R @ (x, 
 Image formation here is simple, and says so: the print's reflectance (white 0.85, black 0.04) under uniform
 light, box-filtered over `supersample`² sub-pixel rays per pixel (each undistorted and traced exactly through the
 camera model), plus Gaussian noise of `noise` (fraction of white) and 8-bit quantisation. The sensor model of
-twin.camera is not applied to calibration photos yet, and the lens model is the rig's five-coefficient OpenCV
-one, which is also what the calibration fits (the richer simulation the issue asks for is not built).
+twin.camera is not applied to the board's photos, and the lens model is the rig's five-coefficient OpenCV
+one, which is also what the calibration fits (a richer lens simulation is not built).
 """
 from __future__ import annotations
 
@@ -52,7 +52,8 @@ class CharucoTarget:
         """(N, 3) the inner chessboard corners in the board frame, in OpenCV's corner-id order."""
         return np.asarray(self.board().getChessboardCorners(), np.float64).reshape(-1, 3)
 
-    @functools.lru_cache(maxsize=4)  # one print per board: every photo of a calibration reuses it
+    # one print per board: every photo of a calibration reuses it (B019: a board is frozen, and few are made)
+    @functools.lru_cache(maxsize=4)  # noqa: B019
     def texture(self) -> np.ndarray:
         """The print's reflectance image, row r / column c covering board y / x in mm at texture_px_per_mm
         (read-only: shared between photos)."""

@@ -1,4 +1,4 @@
-"""A ColorChecker for the colour calibration (issue #16): the X-Rite ColorChecker Classic Mini (4 x 6 patches,
+"""A ColorChecker for the colour calibration (calibration.colour): the X-Rite ColorChecker Classic Mini (4 x 6 patches,
 the Classic's 24 colours on a 13.5 mm pitch, 55.5 x 82.5 mm; the real one is 57 x 83) lying in the sample holder,
 lit by the rig's LEDs.
 

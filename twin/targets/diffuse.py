@@ -1,11 +1,11 @@
-"""A diffuse (Lambertian) reference plate for the LED calibration (issue #16): a flat, matte white tile of known
+"""A diffuse (Lambertian) reference plate for the LED calibration (calibration.leds): a flat, matte white tile of known
 albedo laid in the sample holder, at the sample plane or lifted by spacers of known height.
 
     plate = DiffusePlate(height_mm=40.0)
     L = plate.radiance(rig, "primary", leds=[0, 1, 2])     # (3, H, W, 3): each LED alone at full drive
     W = plate.lit_radiance(rig, "primary", leds=[0, 1, 2])  # (H, W, 3): the three lit together
 
-Why a diffuse plate (issue #16 lets the LED target be chosen): a Lambertian plate's radiance under one LED is
+Why a diffuse plate (of the targets an LED calibration could use): a Lambertian plate's radiance under one LED is
 the LED's own light, I_c Psi(theta_e) cos(theta_e) cos(theta_i) rho / (pi r^2) (paper Eq. 1 with a constant
 BRDF), seen the same from every view and over the whole plate, so one photo carries the LED's position (the
 pattern's centre and falloff), its tilt and its angular profile (the pattern's shape) and its RGB intensity (its

@@ -1,4 +1,4 @@
-"""A flat-field source (issue #16): a diffuse panel of uniform radiance that fills a camera's view, held in
+"""A flat-field source: a diffuse panel of uniform radiance that fills a camera's view, held in
 front of the lens (an LED panel behind a diffuser, or an integrating sphere's port), for the vignetting
 calibration (`calibration.vignetting`).
 

@@ -263,7 +263,7 @@ class PylonCamera:
                 self.cam.StartGrabbing(self.pylon.GrabStrategy_OneByOne)
                 self.session += 1
                 raws, ids = [], []
-                for j, t in enumerate(exposures_s):
+                for t in exposures_s:
                     self._exposure(t)
                     raw, block = self._frame(ids[-1] + 1 if ids else None)
                     raws.append(raw)
