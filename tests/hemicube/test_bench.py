@@ -33,7 +33,7 @@ def test_bench_lumitexel_drifted_baseline_fails(capsys, monkeypatch):
     import twin.bench
 
     plain = twin.bench.torch_lumitexel
-    # the drift: the LED intensity on one side only (here: the baseline loses 1 % of it)
+    # a drift on one side only: the baseline loses 1 % of the LED intensity
     monkeypatch.setattr(twin.bench, "torch_lumitexel", lambda *a: plain(*a) * 0.99)
     rc, res, err = _run(LUMI, capsys)
     assert rc == 1 and not res["passed"]
