@@ -161,7 +161,8 @@ def register(sub) -> None:
     rc, tc = ReconstructConfig(), TrainConfig()
     s = sub.add_parser("reconstruct", help="capture folder -> latents and OpenSVBRDF maps")
     s.add_argument("capture", help="a capture folder (hemicube capture, or the real device's)")
-    s.add_argument("-o", "--output", required=True, help="reconstruction folder (replaced whole when done)")
+    s.add_argument("-o", "--output", required=True, help="reconstruction folder, replaced whole when done; any other "
+                   "existing path, or one inside the capture, is refused")
     s.add_argument("--resolution", type=int, help=f"texture grid texels per side (default: {rc.resolution})")
     s.add_argument("--size-mm", type=float, help="texture grid side in mm (default: detected from the bottom-lit "
                    "photos, shrunk 6.5%% a side, reference §6.1)")

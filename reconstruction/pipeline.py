@@ -13,7 +13,8 @@ to `reconstruction.evaluation.validation`).
                        then the texels next to a much brighter highlight fitted again from sharper photos
                        (ReconstructConfig.spill_ratio, spill_texels; ours, docs/accuracy.md)
 
-The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone). Stages 1, 2
+The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone); an existing
+path that is not one, or an output inside the capture, is refused before any work (`check_output`). Stages 1, 2
 and 4 are kept as they finish, so a killed or failed run, started again with the same capture and settings,
 resumes after the last one finished (reconstruction.output's stage folder).
 """
@@ -31,7 +32,7 @@ import numpy as np
 from reconstruction.stages.alignment import AlignConfig
 from reconstruction.stages.finetune import FinetuneConfig
 from reconstruction.stages.fitting import FitConfig
-from reconstruction.output import STAGES, ReconstructionFolder, stages_folder
+from reconstruction.output import STAGES, SUMMARY, ReconstructionFolder, stages_folder
 
 FINETUNE_PHOTOS = ("lines", "lines+learned")
 
@@ -115,6 +116,22 @@ def choose_holdout(lines: np.ndarray, valid: np.ndarray) -> int:
     return int(np.argmax(np.median(lines[valid].mean(axis=2), axis=0)))
 
 
+def check_output(out: Path, capture: Path) -> None:
+    """An output folder is owned, never clobbered: `reconstruct` replaces only a reconstruction folder (its
+    summary file names it) or an empty folder, and never writes into, over or around the capture it reads. A
+    ValueError names the path otherwise, before anything is written."""
+    o, c = out.resolve(), Path(capture).resolve()
+    if o == c or c in o.parents or o in c.parents:
+        raise ValueError(f"{out}: the output would be the capture being read ({capture}), lie inside it or hold "
+                         "it; choose another folder")
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise ValueError(f"{out} exists and is not a folder; choose another output path")
+        if not (out / SUMMARY).is_file() and any(out.iterdir()):
+            raise ValueError(f"{out} exists and is not a reconstruction folder (no {SUMMARY}); choose another "
+                             "output path or empty it first")
+
+
 def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig(), *, progress: bool = True,
                 rig=None) -> Reconstruction:
     """Run the pipeline on a capture folder into `output` (module docstring)."""
@@ -127,6 +144,7 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
     import shutil
 
     session, out = CaptureSession.open(capture), Path(output)
+    check_output(out, session.dir)
     if rig is None:
         rig = session.rig()
     stages = ReconstructionFolder(stages_folder(out))
