@@ -273,16 +273,20 @@ def register_bench(bench) -> None:
 def _register_bench_pipeline(bench) -> None:
     """`bench latent-ceiling`, `bench fit-limits`, `bench e2e`, `bench train-scaling` (cmd_bench_pipeline). No
     option has a parser default: what is not given is the bench function's default, or --tiny's size."""
-    rig = "built-in rig (paper, mini) or rig folder (default: paper)"
-    device = "torch/Warp device: cpu, cuda (default: cpu)"
-    tiny = "small sizes on the mini rig that run on a CPU in seconds (the options given win)"
+    def parser(name: str, text: str, device: str = "torch/Warp device: cpu, cuda (default: cpu)"):
+        s = bench.add_parser(name, help=text)
+        s.add_argument("--rig", help="built-in rig (paper, mini) or rig folder (default: paper)")
+        s.add_argument("--device", help=device)
+        s.add_argument("--tiny", action="store_true", help="small sizes on the mini rig that run on a CPU in seconds "
+                       "(the options given win)")
+        s.set_defaults(func=cmd_bench_pipeline)
+        return s
+
     for name, text in (("latent-ceiling", "SSIM and Eq. 3 of the best latent (optimised against the exact "
                         "lumitexel) against the network's and fine-tuning's, on exact texels of samples"),
                        ("fit-limits", "the GGX fit's map errors from exact lumitexels, decoded ones, noisy photos "
                         "(and a capture through the pipeline), on exact texels of samples")):
-        s = bench.add_parser(name, help=text)
-        s.add_argument("--rig", help=rig)
-        s.add_argument("--device", help=device)
+        s = parser(name, text)
         s.add_argument("--sample", dest="samples", action="append", help="built-in sample or folder of maps, "
                        "repeatable (default: ramps)")
         s.add_argument("--resolution", type=int, help="texture grid texels per side (default: 64)")
@@ -302,13 +306,9 @@ def _register_bench_pipeline(bench) -> None:
             s.add_argument("--fit-iterations", type=int, help="the fit's iterations (default: its own)")
             s.add_argument("--capture", help="a capture folder of this rig and the (one) sample: also run it "
                            "through the pipeline on the same grid and score it")
-        s.add_argument("--tiny", action="store_true", help=tiny)
-        s.set_defaults(func=cmd_bench_pipeline)
 
-    s = bench.add_parser("e2e", help="`hemicube capture` then `hemicube reconstruct`, each its own process: "
-                         "seconds, memory, bytes; both folders verified")
-    s.add_argument("--rig", help=rig)
-    s.add_argument("--device", help=device)
+    s = parser("e2e", "`hemicube capture` then `hemicube reconstruct`, each its own process: seconds, memory, "
+               "bytes; both folders verified")
     s.add_argument("--sample", help="built-in sample or folder of maps (default: ramps)")
     s.add_argument("--resolution", type=int, help="the sample's maps and the texture grid, texels per side "
                    "(default: each command's own)")
@@ -319,13 +319,9 @@ def _register_bench_pipeline(bench) -> None:
                    "folder, removed)")
     s.add_argument("--twice", action="store_true", help="capture a second time with the same seed and check the "
                    "files are byte-identical (small sizes)")
-    s.add_argument("--tiny", action="store_true", help=tiny)
-    s.set_defaults(func=cmd_bench_pipeline)
 
-    s = bench.add_parser("train-scaling", help="`hemicube train` under torchrun on 1, 2, ... processes: "
-                         "lumitexels/s, speed-up, held-out loss against the 1-process run")
-    s.add_argument("--rig", help=rig)
-    s.add_argument("--device", help="cpu (gloo) or cuda (NCCL, one GPU a process) (default: cpu)")
+    s = parser("train-scaling", "`hemicube train` under torchrun on 1, 2, ... processes: lumitexels/s, speed-up, "
+               "held-out loss against the 1-process run", "cpu (gloo) or cuda (NCCL, one GPU a process) (default: cpu)")
     s.add_argument("--processes", type=int, nargs="+", help="process counts; 1 always runs (default: 1 2)")
     s.add_argument("--steps", type=int, help="training steps of each run (default: 200)")
     s.add_argument("--batch", type=int, help="the global batch (default: 1024)")
@@ -336,5 +332,3 @@ def _register_bench_pipeline(bench) -> None:
     s.add_argument("--loss-rtol", type=float, help="the held-out loss's tolerance against the 1-process run "
                    "(default: 0.05)")
     s.add_argument("--workdir", help="keep the runs here (default: a temporary folder, removed)")
-    s.add_argument("--tiny", action="store_true", help=tiny)
-    s.set_defaults(func=cmd_bench_pipeline)

@@ -79,7 +79,7 @@ def exact_texels(rig, sample: str, resolution: int, size_mm: float, device: str)
     from twin.materials.samples import load_sample
 
     from reconstruction.evaluation.metrics import resample_maps
-    from reconstruction.evaluation.validation import map_parameters
+    from reconstruction.evaluation.validation import exact_measurements, map_parameters
     from reconstruction.stages.extraction import TextureGrid
 
     grid = TextureGrid(resolution, size_mm)
@@ -91,20 +91,9 @@ def exact_texels(rig, sample: str, resolution: int, size_mm: float, device: str)
     return truth, grid, pos, params, W, lines
 
 
-def exact_measurements(rig, pos, params: dict, patterns, camera, device) -> np.ndarray:
-    """(N, K, 3) measurements of `patterns` (K, num_leds, 3) in `camera`'s view, exact (twin.measurements, the
-    physical convention the capture renders in, an opaque sample), in network units."""
-    import twin
-
-    from reconstruction.network.data import LUMITEXEL_SCALE
-
-    return twin.measurements(rig, pos, patterns=patterns, convention="physical", camera=camera, visibility=True,
-                             device=device, transparency=np.zeros(len(pos)), **params) * np.float32(LUMITEXEL_SCALE)
-
-
 def exact_lumitexels(rig, pos, params: dict, device) -> np.ndarray:
-    """(N, num_leds, 3) lumitexels in the primary view, exact (twin.lumitexels, as exact_measurements), in network
-    units."""
+    """(N, num_leds, 3) lumitexels in the primary view, exact (twin.lumitexels, as
+    reconstruction.evaluation.validation.exact_measurements), in network units."""
     import twin
 
     from reconstruction.network.data import LUMITEXEL_SCALE

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from reconstruction.bench.common import best_of, positive_int
+from reconstruction.bench.common import best_of, device_name, positive_int, synchroniser
 
 
 def _random_points(rig, texels: int, seed: int, device: str):
@@ -59,7 +59,7 @@ def bench_fit_forward(rig_name="mini", device="cpu", texels=2304, repeats=5, see
         return WarpForward.apply((rig, "physical", "primary", "separable", "schlick", 1.5, True), *args,
                                  None).index_select(1, idx)
 
-    sync = (lambda: torch.cuda.synchronize()) if str(device).startswith("cuda") else (lambda: None)
+    sync = synchroniser(device)
     seconds = {}
     with torch.no_grad():
         out = {}
@@ -69,7 +69,7 @@ def bench_fit_forward(rig_name="mini", device="cpu", texels=2304, repeats=5, see
     check = same_work("fit_path_vs_tape_all_leds", out["fit_path"], out["baseline_tape_all_leds"], rtol=0.0)
     return finish_checks({"bench": "fit-forward", "rig": rig.name, "leds_upper": int(upper.size),
                           "leds_all": rig.num_leds, "texels": texels, "repeats": repeats,
-                          "device": torch.cuda.get_device_name(0) if str(device).startswith("cuda") else "cpu",
+                          "device": device_name(device),
                           "seconds": seconds, "speedup": seconds["baseline_tape_all_leds"] / seconds["fit_path"]},
                          [check])
 
@@ -130,7 +130,7 @@ def bench_fit_jacobian(rig_name="mini", device="cpu", texels=2304, repeats=3, se
         c = n @ N
         q = torch.stack([n @ X / c, n @ Y / c, torch.full_like(c, 0.3), torch.log(ax) + 0.2, torch.log(ay) - 0.2], 1)
         r = model._residuals(prob, q)
-        sync = (lambda: torch.cuda.synchronize()) if str(device).startswith("cuda") else (lambda: None)
+        sync = synchroniser(device)
         seconds, out = {}, {}
         for name, fn in (("analytic", lambda: jacobian._analytic_jacobian(prob, q)),
                          ("baseline_forward_difference", lambda: jacobian._forward_difference(prob, q, r)),
@@ -168,6 +168,6 @@ def bench_fit_jacobian(rig_name="mini", device="cpu", texels=2304, repeats=3, se
 
     return finish_checks({"bench": "fit-jacobian", "rig": rig.name, "leds_upper": int(upper.size), "texels": texels,
                           "residuals_per_texel": int(r.shape[1]), "repeats": repeats,
-                          "device": torch.cuda.get_device_name(0) if str(device).startswith("cuda") else "cpu",
+                          "device": device_name(device),
                           "seconds": seconds,
                           "speedup": seconds["baseline_forward_difference"] / seconds["analytic"]}, [check, system])

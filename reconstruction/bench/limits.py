@@ -26,8 +26,9 @@ import time
 
 import numpy as np
 
-from reconstruction.bench.common import (device_name, exact_lumitexels, exact_measurements, exact_texels,
-                                         finetune_config, positive_int, software, synchroniser)
+from reconstruction.bench.common import (device_name, exact_lumitexels, exact_texels, finetune_config, positive_int,
+                                         software, synchroniser)
+from reconstruction.evaluation.validation import exact_measurements
 
 ERRORS = ("normal_deg", "tangent_deg", "alpha_x_pct", "alpha_y_pct", "rho_d_pct", "rho_s_pct")
 STAGES = ("oracle", "decoded", "noisy_photos", "decoded_noisy")

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from reconstruction.bench.common import positive_int
+from reconstruction.bench.common import device_name, positive_int
 
 SAMPLE_TEXELS = 1024 * 1024  # the paper's texture size (reference §6.1)
 # The same-work check runs both batchings for a few Adam steps per pass. Over the timed runs' 350 steps the
@@ -149,8 +149,7 @@ def bench_reconstruct(rig_name="paper", device="cuda", texels=16384, network=Non
     fit_precision = same_work("fitting_default_vs_float32_median_loss", [losses["fitting"]],
                               [losses["fitting_float32"]], rtol=PRECISION_RTOL)
     return finish_checks({
-        "bench": "reconstruct", "rig": rig.name, "device": torch.cuda.get_device_name(0) if dev.startswith("cuda")
-        else "cpu", "texels": texels, "network": source,
+        "bench": "reconstruct", "rig": rig.name, "device": device_name(dev), "texels": texels, "network": source,
         "fitting_target": "decoded" if exact is None else "exact lumitexels",
         "network_parameters": count_parameters(model),
         "finetune_iterations": runs["default"].iterations, "fit_info": {k: v for k, v in fit.info.items()

@@ -43,16 +43,21 @@ THRESHOLDS = {
 
 def _render_lines(rig, positions, params: dict, pattern: np.ndarray, device) -> np.ndarray:
     """(N, 3) line measurements in network units of texels with params under one line pattern (L_upper, 3)."""
+    w = np.zeros((1, rig.num_leds, 3), np.float32)
+    w[0, np.flatnonzero(~np.asarray(rig.is_bottom))] = pattern
+    return exact_measurements(rig, positions, params, w, next(iter(rig.cameras)), device)[:, 0]
+
+
+def exact_measurements(rig, positions, params: dict, patterns, camera, device) -> np.ndarray:
+    """(N, K, 3) measurements of `patterns` (K, num_leds, 3) in `camera`'s view, exact (twin.measurements in the
+    physical convention the capture renders in, an opaque sample; no camera pixels, no noise), in network units."""
     import twin
 
     from reconstruction.network.data import LUMITEXEL_SCALE
 
-    w = np.zeros((1, rig.num_leds, 3), np.float32)
-    w[0, np.flatnonzero(~np.asarray(rig.is_bottom))] = pattern
-    m = twin.measurements(rig, positions.astype(np.float32), patterns=w, transparency=np.zeros(len(positions)),
-                          convention="physical", camera=next(iter(rig.cameras)), visibility=True,
-                          device=device, **params)
-    return m[:, 0] * np.float32(LUMITEXEL_SCALE)
+    m = twin.measurements(rig, positions.astype(np.float32), patterns=patterns, transparency=np.zeros(len(positions)),
+                          convention="physical", camera=camera, visibility=True, device=device, **params)
+    return m * np.float32(LUMITEXEL_SCALE)
 
 
 def map_parameters(maps) -> dict:
