@@ -41,6 +41,8 @@ def bench_e2e(rig_name="paper", device="cpu", sample="ramps", resolution=None, s
         with tempfile.TemporaryDirectory(prefix="hemicube-bench-e2e-") as tmp:
             return bench_e2e(rig_name, device, sample, resolution, seed, frames, network, tmp, twice)
     work = Path(workdir)
+    if work.exists() and not work.is_dir():
+        raise ValueError(f"{work}: the work folder is a file; choose a folder (or none, for a temporary one)")
     work.mkdir(parents=True, exist_ok=True)
     common = [] if resolution is None else ["--resolution", str(resolution)]
     capture_args = ["capture", "--rig", rig_name, "--sample", sample, "--seed", str(seed), "--device", device,
