@@ -64,6 +64,12 @@ def end_to_end(rig_obj, sample: str, device: str, output: Path, resolution: int 
              f"texture grid {resolution}^2 over {recon.grid.size_mm:.1f} mm, line {recon.holdout_line} held out of fine-tuning",
              "renders compare texel values on the texture grid (network units); 'truth_maps' renders the true maps "
              "the same way: the ceiling that the photo's noise and pixel footprint allow"]
+    check_ = recon.alignment.info.get("check")
+    if check_ is not None:
+        notes.append("alignment check without ground truth (what a real capture runs): " + (
+            f"the views agree to {check_['median_shift_px']:.2f} px over {check_['tiles_used']} tiles (flagged above "
+            f"{check_['flag_px']} px)" + (" FLAGGED" if check_["flagged"] else "") if check_["verified"] else
+            f"not verified: {check_['tiles_used']} of {check_['tiles']} tiles have texture of the sample's own"))
     if not thresholds:
         notes.append(f"no thresholds are set for rig {rig_obj.name!r}: the numbers are reported, not checked")
     paths = write_report(output / "report", title=f"hemicube validate: {rig_obj.name} / {sample}",

@@ -27,6 +27,7 @@ def cmd_reconstruct(args) -> int:
         config = replace(config, spill_ratio=None if args.spill_ratio.lower() == "none" else _ratio(args.spill_ratio))
     if args.finetune_precision is not None:
         config = replace(config, finetune=replace(config.finetune, precision=args.finetune_precision))
+    config = replace(config, accept_alignment=args.accept_alignment)
     r = reconstruct(args.capture, args.output, config, progress=not args.no_progress)
     print(f"reconstruction: {r.directory} ({r.grid.resolution}^2 texels over {r.grid.size_mm:.1f} mm; "
           + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in r.timings.items()) + ")")
@@ -183,6 +184,8 @@ def register(sub) -> None:
     s.add_argument("--finetune-precision", choices=PRECISIONS, help="fine-tuning's matrix products on a CUDA device: "
                    "TF32 (tensor cores; within 1%% of float32's objective, measured) or float32; the CPU's are float32 "
                    f"either way (default: {rc.finetune.precision})")
+    s.add_argument("--accept-alignment", action="store_true", help="go on when the alignment check flags the two "
+                   "views as disagreeing (reconstruction.stages.alignment_check; the default stops with one line)")
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
 

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from reconstruction.stages.alignment import AlignConfig
+from reconstruction.stages.alignment_check import CheckConfig
 from reconstruction.stages.finetune import FinetuneConfig
 from reconstruction.stages.fitting import FitConfig
 from reconstruction.output import STAGES, SUMMARY, ReconstructionFolder, stages_folder
@@ -62,6 +63,10 @@ class ReconstructConfig:
     network: str = "pretrained"    # "pretrained" (shipped for this rig) or a `hemicube train` run folder
     device: str = "cpu"
     align: AlignConfig = field(default_factory=AlignConfig)
+    # the alignment's check without ground truth (reconstruction.stages.alignment_check): a flagged alignment stops
+    # the reconstruction with one line, unless accept_alignment (the stage is kept: a re-run resumes from it)
+    alignment_check: CheckConfig = field(default_factory=CheckConfig)
+    accept_alignment: bool = False
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     fit: FitConfig = field(default_factory=FitConfig)
 
@@ -215,7 +220,8 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
                       config: ReconstructConfig, progress: bool) -> Reconstruction:
     from twin.capture.plan import indices_of
 
-    from reconstruction.stages.alignment import align_views
+    from reconstruction.stages.alignment import AlignmentError, align_views
+    from reconstruction.stages.alignment_check import check_alignment
     from reconstruction.stages.extraction import extract, texture_grid
     from reconstruction.stages.finetune import decoded_lumitexels, finetune
     from reconstruction.stages.fitting import fit_ggx, to_maps
@@ -245,18 +251,26 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         timings[f"{name}_s"] = time.perf_counter() - t + earlier
         stages.record_stage(name, key, {"seconds": timings[f"{name}_s"], **_jsonable(extra)})
 
-    key = _key(session.content_digest(), rig.digest(), config.device, asdict(config.align))
+    key = _key(session.content_digest(), rig.digest(), config.device, asdict(config.align),
+               asdict(config.alignment_check))
     rec = finished("alignment", key, "info")
     if rec is not None:
         alignment = stages.alignment(rec["info"])
     else:
         t = stage("alignment")
         uniform = indices_of(session).uniform
-        alignment = align_views(session.photo(uniform, 0), session.photo(uniform, 1), rig,
-                                replace(config.align, device=config.device))
+        pair = session.photo(uniform, 0), session.photo(uniform, 1)
+        alignment = align_views(*pair, rig, replace(config.align, device=config.device))
+        alignment.info["check"] = check_alignment(*pair, alignment, rig, config.alignment_check)
         stages.write_alignment(alignment)
         done("alignment", key, t, info=alignment.info)
     stages.link_stage("alignment", out)
+    check = alignment.info["check"]
+    if check["flagged"] and not config.accept_alignment:
+        raise AlignmentError(
+            f"alignment: after aligning, the two views still disagree by {check['median_shift_px']:.2f} px (median "
+            f"over {check['tiles_used']} tiles; limit {check['flag_px']} px): has a camera moved since calibration, or "
+            "is the sample off the board? Re-run with --accept-alignment to go on with this alignment")
 
     key = _key(key, config.resolution, config.size_mm, config.footprint)
     if finished("extraction", key) is not None:

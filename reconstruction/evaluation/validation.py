@@ -83,6 +83,8 @@ def evaluate(capture, recon, rig, device="cpu") -> tuple[dict, list]:
                      "holdout_line": k, "timings_s": dict(recon.timings)}
 
     metrics["alignment"] = alignment_error(recon.alignment, session.pixel_texel(0), session.pixel_texel(1))
+    if "check" in recon.alignment.info:  # the check a real capture runs (no ground truth), beside the truth's figure
+        metrics["alignment"]["check"] = recon.alignment.info["check"]
 
     truth = resample_maps(true_maps, grid.size_mm, R)
     on_sample = truth_coverage(true_maps, grid.size_mm, R)

@@ -20,6 +20,11 @@ Two steps, as in the reference:
      `rig.frame.height` below the markers: a homography fitted to the marker corners directly would be that
      of the frame's plane, off by the parallax of that height (~1 px in the mini rig's 45 deg view).
    * "calibrated": the homography the two calibrated cameras (rig R, t) induce on the sample plane.
+   * "auto" (ours, the default): the first of sift, markers, calibrated that works on these photos and lies within
+     `AlignConfig.coarse_tolerance` of the calibrated geometry. SIFT keypoints are taken inside the frame's window
+     only (`sample_window`): outside it they lie on the frame, 1.5 mm above the sample plane, and a homography
+     fitted to them is the frame's (10-20 px off the sample's on the paper rig, more than a glossy sample's dense
+     matches pull back). On both rigs' uniform photos SIFT then rarely finds enough matches, and the markers give it.
 2. **Dense** (`AlignConfig.dense`, reference §6.2): dense SIFT descriptors (SIFT Flow) of the primary photo
    and of the secondary photo warped into the primary's pixel grid by the homography, then PatchMatch from
    the primary to the warped secondary over integer offsets, so that offset 0 IS the homography. Ours on
@@ -32,12 +37,11 @@ Two steps, as in the reference:
      homography (`AlignConfig.refine_passes`). The refit changes only the height of the sample plane that
      the calibrated cameras see (`AlignConfig.refit`, "height"; "homography" frees all 8 parameters). For a
      planar sample the refitted homography is the best mapping there is, and it carries the textured parts'
-     accuracy into the textureless ones, which PatchMatch alone cannot align (on the mini rig the SIFT homography is off by a median 0.7-2 px, up to
-     4 px: its ~20 matches cluster on the frame's markers, 1.5 mm above the sample plane);
+     accuracy into the textureless ones, which PatchMatch alone cannot align;
    * a gate: a pixel keeps its own PatchMatch offset only where that match is distinct and clearly better
      than the homography's (`AlignConfig.gate`, `gain`), i.e. where the sample departs from the plane;
      elsewhere the map is the homography.
-   The dense step looks inside the holder frame's window only (`_roi`).
+   The dense step looks inside the holder frame's window only (`sample_window`).
 3. **Pyramid** (ours, `AlignConfig.pyramid_width`): photos wider than 700 px (the paper rig's 2664 px) are
    binned f x f (f = 4 there) and steps 1-2 run on the binned pair with the reference constants scaled to
    it; then the dense step runs once more at full width, where every pixel searches the whole window of
@@ -91,14 +95,17 @@ class AlignConfig:
     and are scaled with the image width (module docstring)."""
 
     coarse: str = "auto"  # "sift" (reference §6.1), "markers" (paper §8: ARTags), "calibrated" (ours), or
-    #                       "auto" (ours): sift, else markers, else calibrated; a smooth sample under uniform
-    #                       light can leave SIFT with too few matches (brushed_metal at 64^2: 4 matches)
+    #                       "auto" (ours): sift, else markers, else calibrated (module docstring)
     dense: bool = True  # dense SIFT + PatchMatch refinement (reference §6.2, paper §8)
     # --- coarse: SIFT (reference §6.1 step 5) ---
     ratio: float = 0.5  # Lowe's ratio test (reference)
     ransac_px: float | None = None  # RANSAC reprojection threshold in undistorted px; None = 8 reference px
     #                                  (the reference's 4 px on its half-size SIFT images)
     min_inliers: int = 12  # ours: fewer RANSAC inliers than this is an error, not a homography
+    # ours, "auto" only: a coarse homography that moves the sample window's corners farther than this (reference px)
+    # from where the calibrated cameras put them is passed over for the next method: half the dense step's search
+    # (max_offset), so that the dense step still reaches the truth from it twice over
+    coarse_tolerance: float = 25.0
     # --- coarse: markers (ours: the paper names ARTags, the released code does not use them) ---
     min_markers: int = 2  # per camera, for a stable pose
     marker_upsample: int = 4  # ours: ArUco needs >~ 4 px per marker cell; the mini rig's markers have ~2.5
@@ -176,7 +183,7 @@ class AlignConfig:
             v = getattr(self, name)
             if not v or any(not (np.isfinite(r) and r > 0) for r in v):
                 raise ValueError(f"AlignConfig.{name} must be a non-empty tuple of positive radii, got {v}")
-        for name in ("init_noise", "max_offset", "gate", "gain", "orientation_sharpness", "norm_floor",
+        for name in ("init_noise", "max_offset", "coarse_tolerance", "gate", "gain", "orientation_sharpness", "norm_floor",
                      "volume_budget_mb"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -304,12 +311,14 @@ def _scaled(values, scale) -> tuple[int, ...]:
 
 # --- coarse step ------------------------------------------------------------------------------------------
 
-def _sift_homography(g0, g1, cam0, cam1, cfg, scale):
+def _sift_homography(g0, g1, cam0, cam1, rig, cfg, scale):
     import cv2
 
     sift = cv2.SIFT_create()
-    kp0, d0 = sift.detectAndCompute(_to_u8(g0), None)
-    kp1, d1 = sift.detectAndCompute(_to_u8(g1), None)
+    # keypoints on the sample only: the holder frame's markers and edges lie rig.frame.height above the sample
+    # plane, so a homography fitted to them is the frame's (10-20 px off the sample's on the paper rig)
+    kp0, d0 = sift.detectAndCompute(_to_u8(g0), _window_mask(cam0, rig))
+    kp1, d1 = sift.detectAndCompute(_to_u8(g1), _window_mask(cam1, rig))
     info = {"keypoints": [len(kp0), len(kp1)]}
     if d0 is None or d1 is None or len(kp0) < 2 or len(kp1) < 2:
         raise AlignmentError(f"sift: too few keypoints (primary {len(kp0)}, secondary {len(kp1)}); "
@@ -375,17 +384,52 @@ def _aruco_parameters():
     return p
 
 
+def _window_mask(cam, rig) -> np.ndarray | None:
+    """uint8 mask of the holder frame's window (sample_window's square) in `cam`'s photo; None without a frame."""
+    import cv2
+
+    if rig.frame is None:
+        return None
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.fillConvexPoly(mask, np.rint(_window_corners(cam, rig)[[0, 1, 3, 2]]).astype(np.int32), 255)
+    return mask
+
+
+def _window_corners(cam, rig) -> np.ndarray:
+    """(4, 2) raw pixels of the corners of the part of the sample plane that no frame wall hides (sample_window)."""
+    sp = rig.sample
+    o, xa, ya = (np.asarray(v, float) for v in (sp.origin, sp.x_axis, sp.y_axis))
+    h = rig.frame.inner_size / 2 - rig.frame.height
+    return cam.project(np.array([o + a * xa + b * ya for a in (-h, h) for b in (-h, h)]))[0]
+
+
+def _disagreement(H, cam0, cam1, rig) -> float:
+    """Largest distance (secondary px) over the window's corners between where H and the calibrated cameras map
+    them on the sample plane: how far a coarse homography is from the rig's geometry."""
+    Hc = _plane_to_pixels(cam1.K, cam1.R, cam1.t, rig) @ np.linalg.inv(_plane_to_pixels(cam0.K, cam0.R, cam0.t, rig))
+    u = _undistort_px(cam0, _window_corners(cam0, rig))
+    return float(np.max(np.linalg.norm(_apply_h(H, u) - _apply_h(Hc, u), axis=1)))
+
+
 def _coarse(g0, g1, cam0, cam1, rig, cfg, scale):
     if cfg.coarse == "auto":
         failed = {}
         for method in AUTO_ORDER:
             try:
                 H, info = _coarse(g0, g1, cam0, cam1, rig, replace(cfg, coarse=method), scale)
-                return H, {**info, "coarse_method": method, "coarse_failed": failed}
             except AlignmentError as e:
                 failed[method] = str(e)
+                continue
+            # a measured homography far from the calibrated geometry is not trusted (AlignConfig.coarse_tolerance):
+            # the rig's calibration bounds it better than matches on view-dependent highlights do
+            off = _disagreement(H, cam0, cam1, rig) if rig.frame is not None else 0.0
+            if off > cfg.coarse_tolerance * scale:
+                failed[method] = (f"{method}: {off:.1f} px from the calibrated geometry (tolerance "
+                                  f"{cfg.coarse_tolerance * scale:.1f} px)")
+                continue
+            return H, {**info, "coarse_method": method, "coarse_failed": failed, "calibrated_disagreement_px": off}
     if cfg.coarse == "sift":
-        return _sift_homography(g0, g1, cam0, cam1, cfg, scale)
+        return _sift_homography(g0, g1, cam0, cam1, rig, cfg, scale)
     if cfg.coarse == "markers":
         R0, t0, i0 = _marker_pose(g0, cam0, rig, cfg, "primary")
         R1, t1, i1 = _marker_pose(g1, cam1, rig, cfg, "secondary")
@@ -487,7 +531,7 @@ def _refit(H, field, roi, box, cam0, cam1, cfg, rig):
 
 # --- the two views ------------------------------------------------------------------------------------------
 
-def _roi(cam0, rig, reach: int) -> tuple[int, int, int, int]:
+def sample_window(cam0, rig, reach: int) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) exclusive, in the primary photo: where the dense step looks. The reference crops to the
     sample's texture area plus 25 px (§6.1 step 4), known from its mask; we use what holds any sample: the
     holder frame's window on the sample plane, less the frame's height (its inner walls hide up to that much
@@ -496,10 +540,7 @@ def _roi(cam0, rig, reach: int) -> tuple[int, int, int, int]:
     whole photo less `reach`."""
     x0, y0, x1, y1 = 0, 0, cam0.width, cam0.height
     if rig.frame is not None:
-        sp = rig.sample
-        o, xa, ya = (np.asarray(v, float) for v in (sp.origin, sp.x_axis, sp.y_axis))
-        h = rig.frame.inner_size / 2 - rig.frame.height
-        uv, _ = cam0.project(np.array([o + a * xa + b * ya for a in (-h, h) for b in (-h, h)]))
+        uv = _window_corners(cam0, rig)
         x0, y0 = np.ceil(uv.min(0)).astype(int)
         x1, y1 = np.floor(uv.max(0)).astype(int) + 1
     x0, y0 = max(x0, 0) + reach, max(y0, 0) + reach
@@ -617,7 +658,7 @@ def _dense(t0, t1, cam0, cam1, H, u0, rig, cfg, scale, window):
          "init": max(1, int(round(cfg.init_noise * scale))), "exhaustive": window is not None}
     # how far from a pixel its cost looks: offset window, patch, descriptor cells (2 cells + the tent) and Sobel
     pad = p["R"] + cfg.patch // 2 + int(np.ceil(3 * p["cell"])) + 1
-    x0, y0, x1, y1 = _roi(cam0, rig, pad)
+    x0, y0, x1, y1 = sample_window(cam0, rig, pad)
     box = (max(x0 - pad, 0), max(y0 - pad, 0), min(x1 + pad, cam0.width), min(y1 + pad, cam0.height))
     bx0, by0, bx1, by1 = box
     roi = np.zeros((by1 - by0, bx1 - bx0), bool)
