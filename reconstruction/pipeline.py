@@ -47,9 +47,10 @@ class ReconstructConfig:
     # the line photo left out of fine-tuning for validation (the paper holds out 1 of 64, unnamed);
     # None: the brightest line over the sample (a dim line would score the sensor's noise, not the model)
     holdout_line: int | None = None
-    # how a texel's photo value is read: "point" (at its centre), "cell" (the mean over its cell's pixels) or
-    # "gaussian" (the reference's anti-aliasing blur); reconstruction.stages.extraction, step 2
-    footprint: str = "point"
+    # how a texel's photo value is read: "cell" (the mean over the photosites of its cell: where a texel spans
+    # many, their noise is what decides a weak lobe), "point" (at its centre) or "gaussian" (the reference's
+    # anti-aliasing blur); reconstruction.stages.extraction, step 2
+    footprint: str = "cell"
     # the photos fine-tuning fits (step 4): "lines" (the 64 linear lights less the held-out one, as the paper and
     # the reference) or "lines+learned" (and the primary view's learned-pattern photos, which light many LEDs at
     # once: they constrain directions of the latent that no line sees; docs/accuracy.md)

@@ -22,18 +22,18 @@ Per photo and camera (reference §6.3, with the differences stated):
   1. flat field and colour matrix (twin.camera.correction, from the rig's calibration): camera RGB -> the
      LED-RGB radiance the forward model renders, clamped at >= 0 as the reference does;
   2. the texel's footprint in the photo (`footprint`, ours; one function per method, FOOTPRINTS):
-     "point" (default): no filter, the value at the texel centre (step 3): the GGX fit models the BRDF AT the
-     texel centre, and both views then read the same kind of value.
-     "cell": the mean over the largest odd square of pixels that, with step 3's bilinear lookup (1 px more),
-     stays inside the texel's cell: width k, the largest odd number with k + 1 <= d, d the smallest pixel step
-     between adjacent texels of that view (1, no filter, under 4 px: the mini rig's 2.3 px at 48^2; the paper
-     rig from 512^2 on, and its secondary view, foreshortened to 2.6 px, at 256^2). A texel spanning many
-     photosites is then measured by more of them than the ~4 a bilinear lookup reads (the paper rig at 256^2:
-     4.8 px a texel in the primary view, a 3 px box, half the noise). Why not the default (docs/accuracy.md):
-     on the paper rig at 256^2 with maps as fine as the grid it made normals, alpha and rho_s
-     20-30% better on satin and wood, but on the mini rig at 24^2 (64^2 maps: texture finer than a texel) it
-     made wood's normals and rho_d and paper's alpha (30 -> 52%) worse, scored against the maps at the texel
-     centre; and where one view is read over a box and the other at its centre the two disagree.
+     "point": no filter, the value at the texel centre (step 3), the ~4 photosites around it.
+     "cell" (default): the mean over the box of pixels, odd widths kx x ky along the image's axes, whose photosites
+     overlap the texel's cell (the parallelogram the two grid steps span in that view): no photosite's centre more
+     than half a pixel outside it, at every texel, step 3's bilinear lookup included (no filter where both widths
+     are 1: the mini rig's ~2 px a texel at 48^2 and the paper rig's ~1 px at 1024^2, read at the centre; the paper
+     rig at 192^2: 5 x 5 in the primary view, 5.4 px a texel, 3 x 3 in the secondary, 4.8 x 3.4 px). Why: a texel
+     spanning many photosites is measured by all of them instead of the ~4 a bilinear lookup reads (the noise's
+     standard deviation ~sigma / k against ~2 sigma / 3), and a weak, rough lobe (paper stock's, fabric's: 0.5-2% of
+     a photo) is decided by that noise: its alpha error grows in proportion to the photos' noise per texel
+     (docs/accuracy.md: paper on the paper rig at 192^2, alpha 13.0 / 13.7% at the centre, 7.2 / 8.9% over the cell).
+     Its limit: where the maps vary within a texel (maps finer than the grid) the cell's mean is not the BRDF at the
+     texel centre the fit models (measured on the mini rig at 24^2 with 64^2 maps: paper's alpha 30 -> 52%).
      "gaussian": the reference's anti-aliasing Gaussian, odd width k = 2 ceil(d/2 + 1) - 1 with d the largest
      pixel step between adjacent texels (only when d > 1.5 px). Why not the default: the GGX fit models the
      BRDF AT the texel centre, and the Gaussian (sigma ~1.1 px for texels 2 px apart) mixes the neighbours'
@@ -76,6 +76,10 @@ SAMPLE_RATIO = 0.5
 # outside the board: not evidence either way
 LIT_FRACTION = 0.05
 MIN_SAMPLE_PIXELS = 64
+# "cell": how far (in texels) past the half-pixel margin a photosite's centre may lie: a perspective view's cells
+# shrink across the field (the paper rig's secondary at 192^2: 2.98-3.4 px), and a hundredth of a texel is rounding,
+# not another texel's light
+CELL_SLACK = 0.01
 READERS = 8  # threads that read photos at once (at most the CPUs): 8 x ~0.3 GB of photo in flight
 
 
@@ -222,33 +226,55 @@ def _pixel_steps(uv: np.ndarray, shape) -> np.ndarray:
     return steps[np.isfinite(steps)]
 
 
-def _cell_width(steps: np.ndarray) -> int:
-    """Step 2, "cell": the largest odd k with k + 1 <= d (d the smallest step); 0 (no filter) where k is 1."""
-    k = 2 * math.floor(float(steps.min()) / 2 - 1) + 1 if steps.size else 0
-    return k if k >= 3 else 0
+def _cell_widths(uv: np.ndarray, shape) -> tuple[int, int]:
+    """Step 2, "cell": odd box widths (kx, ky), (0, 0) (no filter) where both are 1. With the lookup's pixel, the
+    photosite centres read lie within h = k / 2 + 1/2 of the texel centre, and none is more than half a pixel outside
+    the cell when m_r0 k_x / 2 + m_r1 k_y / 2 <= 1/2 for both rows r of m, the largest |J^-1| over the texels, J the
+    2 x 2 of the view's pixel steps along the grid's columns and rows (a pixel offset p is J^-1 p in texel units)."""
+    g = uv.reshape(*shape, 2).astype(np.float64)
+    a, b = (g[:-1, 1:] - g[:-1, :-1]).reshape(-1, 2), (g[1:, :-1] - g[:-1, :-1]).reshape(-1, 2)
+    jac = np.stack([a, b], axis=-1)  # (n, 2 image axes, 2 grid axes)
+    jac = jac[np.isfinite(jac).all(axis=(1, 2)) & (np.abs(np.linalg.det(jac)) > 1e-12)] if len(jac) else jac
+    if not len(jac):
+        return 0, 0
+    m = np.abs(np.linalg.inv(jac)).max(axis=0)  # rows: the grid axes; columns: the image axes x, y
+
+    def fits(kx, ky):
+        return bool(np.all(m[:, 0] * kx / 2 + m[:, 1] * ky / 2 <= 0.5 + CELL_SLACK))
+
+    # each axis alone, then the wider shrunk until both fit together (a grid turned in the image)
+    kx, ky = (max(1, 2 * math.floor((1.0 + 2 * CELL_SLACK) / max(m[:, i].max(), 1e-12) / 2 - 0.5) + 1)
+              for i in (0, 1))
+    while not fits(kx, ky) and max(kx, ky) > 1:  # the wider first, both alike when equal (no favoured axis)
+        kx, ky = max(1, kx - 2 * (kx >= ky)), max(1, ky - 2 * (ky >= kx))
+    return (0, 0) if (kx, ky) == (1, 1) or not fits(kx, ky) else (kx, ky)
 
 
-def _gaussian_width(steps: np.ndarray) -> int:
+def _gaussian_width(uv: np.ndarray, shape) -> tuple[int, int]:
     """Step 2, "gaussian" (reference §6.1 step 4): odd width 2 ceil(d/2 + 1) - 1 from the largest step d; 0 (no
     blur) when texels are under 1.5 px."""
+    steps = _pixel_steps(uv, shape)
     d = float(steps.max()) if steps.size else 0.0
-    return 0 if d <= 1.5 else 2 * math.ceil(d / 2 + 1) - 1
+    k = 0 if d <= 1.5 else 2 * math.ceil(d / 2 + 1) - 1
+    return k, k
 
 
-def _box(img: np.ndarray, k: int) -> np.ndarray:
+def _box(img: np.ndarray, k: tuple[int, int]) -> np.ndarray:
     import cv2
 
-    return cv2.blur(img, (k, k), borderType=cv2.BORDER_REFLECT)
+    return cv2.blur(img, k, borderType=cv2.BORDER_REFLECT)
 
 
-def _gaussian(img: np.ndarray, k: int) -> np.ndarray:
+def _gaussian(img: np.ndarray, k: tuple[int, int]) -> np.ndarray:
     import cv2
 
-    return cv2.GaussianBlur(img, (k, k), 0, borderType=cv2.BORDER_REFLECT)
+    return cv2.GaussianBlur(img, k, 0, borderType=cv2.BORDER_REFLECT)
 
 
-# step 2's methods: (the filter's width from a view's texel steps, the filter) (colour-science style dispatch)
-FOOTPRINTS = {"point": (lambda steps: 0, None), "cell": (_cell_width, _box), "gaussian": (_gaussian_width, _gaussian)}
+# step 2's methods: (the filter's (kx, ky) from a view's texel pixels (uv, grid shape), the filter) (colour-science
+# style dispatch)
+FOOTPRINTS = {"point": (lambda uv, shape: (0, 0), None), "cell": (_cell_widths, _box),
+              "gaussian": (_gaussian_width, _gaussian)}
 
 
 def _taps(shape, uv: np.ndarray) -> tuple:
@@ -260,14 +286,14 @@ def _taps(shape, uv: np.ndarray) -> tuple:
     return bilinear_taps(shape, uv[:, 0], uv[:, 1])
 
 
-def _sample(img: np.ndarray, taps: tuple, footprint: str = "point", ksize: int = 0) -> np.ndarray:
+def _sample(img: np.ndarray, taps: tuple, footprint: str = "point", ksize: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at the points of `taps` (_taps), NaN outside the
-    image, after the footprint's filter of width ksize (none when 0) (exact weights: cv2.remap would quantise the
+    image, after the footprint's filter of widths ksize (kx, ky; none when 0) (exact weights: cv2.remap would quantise the
     sub-pixel position to 1/32 px)."""
     from reconstruction.stages.alignment import bilinear_at
 
-    if ksize:
-        img = FOOTPRINTS[footprint][1](img, ksize)
+    if max(ksize) > 1:
+        img = FOOTPRINTS[footprint][1](img, tuple(ksize))
     return bilinear_at(img, taps).astype(np.float32)
 
 
@@ -277,7 +303,7 @@ def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
     return _sample(alignment.map, _taps(alignment.map.shape, uv_primary))
 
 
-def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "point",
+def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "cell",
             demosaic: str = "bilinear", progress: bool = False) -> Measurements:
     """Per-texel measurements of a capture (module docstring; step 2's method: `footprint`, one of FOOTPRINTS;
     step 0's `demosaic`, one of twin.camera.bayer.DEMOSAICS)."""
@@ -299,7 +325,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
     pos = grid.positions(rig)
     uv0, _ = cams[0].project(pos)
     uv1 = secondary_pixels(uv0, alignment)
-    k0, k1 = (FOOTPRINTS[footprint][0](_pixel_steps(uv, grid.shape)) for uv in (uv0, uv1))
+    k0, k1 = (FOOTPRINTS[footprint][0](uv, grid.shape) for uv in (uv0, uv1))
     scale = np.float32(LUMITEXEL_SCALE)
 
     calibrations = [calibration_of(c, rig.flat_fields.get(c.name)) for c in cams]

@@ -179,18 +179,33 @@ def test_bad_captures_are_refused(extracted, mini, tmp_path):
         extract(cap, mini, grid, _ExactAlignment(mini), footprint="box")
 
 
+def _grid_uv(R: int, step_x: float, step_y: float, turn_deg: float = 0.0) -> np.ndarray:
+    """The pixels (R * R, 2) of an R x R texel grid whose columns step step_x along the image's x and rows step_y
+    along its y, turned by turn_deg in the image."""
+    c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+    jj, ii = np.meshgrid(np.arange(R, dtype=float), np.arange(R, dtype=float))
+    x, y = jj.ravel() * step_x, ii.ravel() * step_y
+    return np.stack([c * x - s * y + 100.0, s * x + c * y + 100.0], axis=1)
+
+
 def test_footprint_widths():
-    """Step 2's filter widths from a view's texel steps: "cell" the largest odd k with k + 1 <= d, d the smallest
-    step (none where that is 1: texels under 4 px apart, the mini rig's ~2 px); "gaussian" the reference's
-    2 ceil(d/2 + 1) - 1 of the largest step, none at 1.5 px or less; "point" none."""
+    """Step 2's filter widths from a view's texel pixels: "cell" the largest odd k <= d along each image axis, d the
+    cell's extent there (no photosite centre more than half a pixel outside the cell; none where both are 1: the mini
+    rig's ~2 px a texel), narrower where the grid is turned in the image (the box's corners must stay in); "gaussian"
+    the reference's 2 ceil(d/2 + 1) - 1 of the largest step, none at 1.5 px or less; "point" none."""
     from reconstruction.stages.extraction import FOOTPRINTS
 
     cell, gaussian, point = (FOOTPRINTS[f][0] for f in ("cell", "gaussian", "point"))
-    for d, k in ((2.2, 0), (3.99, 0), (4.0, 3), (5.99, 3), (6.0, 5), (7.4, 5), (8.0, 7)):
-        assert cell(np.array([d + 3.0, d, d + 1.0])) == k, d
+    for d, k in ((2.2, 0), (2.9, 0), (3.0, 3), (4.9, 3), (5.0, 5), (7.4, 7), (8.0, 7)):
+        assert cell(_grid_uv(4, d, d), (4, 4)) == ((k, k) if k else (0, 0)), d
+    assert cell(_grid_uv(4, 5.4, 3.4), (4, 4)) == (5, 3)  # a view foreshortened along y
+    assert cell(_grid_uv(4, 3.4, 1.8), (4, 4)) == (3, 1)
+    # turned by 45 degrees, a 6 px cell holds a 3 px box (its corner 2.1 px out along the diagonal), not a 5 px one
+    assert cell(_grid_uv(4, 6.0, 6.0, 45.0), (4, 4)) == (3, 3)
     for d, k in ((1.5, 0), (2.2, 5), (7.4, 9)):
-        assert gaussian(np.array([1.0, d])) == k, d
-    assert cell(np.array([])) == gaussian(np.array([])) == point(np.array([8.0])) == 0
+        assert gaussian(_grid_uv(4, d, 1.0), (4, 4)) == (k, k), d
+    empty = np.full((16, 2), np.nan)
+    assert cell(empty, (4, 4)) == gaussian(empty, (4, 4)) == point(_grid_uv(4, 8, 8), (4, 4)) == (0, 0)
 
 
 def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
@@ -199,7 +214,7 @@ def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
     cell's own value exactly, and with iid pixel noise sigma its error has the standard deviation of the weights'
     norm, sigma (6.5 / 49) (two overlapping 7 px boxes a side) against sigma / 2 at the centre alone ("point");
     the reference's Gaussian (9 px) takes the neighbours' values in."""
-    from reconstruction.stages.extraction import FOOTPRINTS, _pixel_steps, _sample, _taps
+    from reconstruction.stages.extraction import FOOTPRINTS, _sample, _taps
 
     R, d, sigma = 16, 8, 0.1
     rng = np.random.default_rng(0)
@@ -207,13 +222,12 @@ def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
     img = np.kron(cells, np.ones((d, d)))[..., None].repeat(3, axis=2).astype(np.float32)
     jj, ii = np.meshgrid(np.arange(R), np.arange(R))
     uv = np.stack([jj.ravel() * d + (d - 1) / 2, ii.ravel() * d + (d - 1) / 2], axis=1)
-    steps = _pixel_steps(uv, (R, R))
     inner = ((ii > 0) & (ii < R - 1) & (jj > 0) & (jj < R - 1)).ravel()  # away from the image's border
 
     def read(footprint, image):
-        return _sample(image, _taps(image.shape, uv), footprint, FOOTPRINTS[footprint][0](steps))[:, 0] - cells.ravel()
+        return _sample(image, _taps(image.shape, uv), footprint, FOOTPRINTS[footprint][0](uv, (R, R)))[:, 0] - cells.ravel()
 
-    assert FOOTPRINTS["cell"][0](steps) == 7 and FOOTPRINTS["gaussian"][0](steps) == 9
+    assert FOOTPRINTS["cell"][0](uv, (R, R)) == (7, 7) and FOOTPRINTS["gaussian"][0](uv, (R, R)) == (9, 9)
     assert np.abs(read("cell", img)).max() < 1e-6
     assert np.abs(read("gaussian", img)[inner]).max() > 1e-2  # sigma 1.7 px: ~2% of a neighbour one unit off
     noisy = (img + sigma * rng.standard_normal(img.shape)).astype(np.float32)
