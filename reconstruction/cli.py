@@ -28,7 +28,7 @@ def cmd_reconstruct(args) -> int:
     if args.finetune_precision is not None:
         config = replace(config, finetune=replace(config.finetune, precision=args.finetune_precision))
     config = replace(config, accept_alignment=args.accept_alignment)
-    r = reconstruct(args.capture, args.output, config, progress=not args.no_progress)
+    r = reconstruct(args.capture, args.output, config, progress=not args.no_progress, break_lock=args.break_lock)
     print(f"reconstruction: {r.directory} ({r.grid.resolution}^2 texels over {r.grid.size_mm:.1f} mm; "
           + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in r.timings.items()) + ")")
     return 0
@@ -158,6 +158,7 @@ def register(sub) -> None:
     from reconstruction.stages.finetune import PRECISIONS
     from reconstruction.pipeline import FINETUNE_PHOTOS, ReconstructConfig
     from reconstruction.network.train import TrainConfig
+    from twin.lock import BREAK_LOCK_HELP
 
     rc, tc = ReconstructConfig(), TrainConfig()
     s = sub.add_parser("reconstruct", help="capture folder -> latents and OpenSVBRDF maps")
@@ -186,6 +187,7 @@ def register(sub) -> None:
                    f"either way (default: {rc.finetune.precision})")
     s.add_argument("--accept-alignment", action="store_true", help="go on when the alignment check flags the two "
                    "views as disagreeing (reconstruction.stages.alignment_check; the default stops with one line)")
+    s.add_argument("--break-lock", action="store_true", help=BREAK_LOCK_HELP)
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
 

@@ -17,11 +17,16 @@ Finished stages are kept until then in a stage folder beside OUT (`stages_folder
 as above plus stages.json), so that a killed or failed run resumes after its last finished stage (alignment,
 extraction, fine-tuning): stages.json holds, per stage, the key of everything it was computed from (the capture's
 content, the rig, the settings, the network) and the sha256 of its files; a stage is reused only when both match.
-Its files are hard-linked into the finished folder, and the stage folder is removed once OUT is complete.
+Its files are hard-linked into the finished folder, and the stage folder is removed once OUT is complete. It is also
+where the run keeps its lock (twin.lock) and builds OUT's next version (twin.atomic.atomic_folder's scratch), so that
+the next run's clean-up removes what a killed run left there and nothing else.
 Fine-tuning and the fit, the long stages at the real device's scale, also keep their unfinished state there
 (finetune_state.npz, fit_state.npz and refit_state.npz, the stages "finetune_state", "fit_state" and "refit_state": the
 checkpoints of reconstruction.stages.finetune.finetune and reconstruction.stages.fitting.direct._fit_direct, the last
 that of the pipeline's refit of the texels next to a brighter highlight), so that a killed one goes on where it stood.
+
+Every file is reached through `_path` (twin.paths.inside): a symbolic link inside either folder is refused by name,
+never followed, and so is a path the summary lists outside the folder.
 """
 from __future__ import annotations
 
@@ -32,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
+from twin.paths import files_below, inside
 
 FORMAT_NAME = "hemicube-reconstruction"
 FORMAT_VERSION = 1
@@ -65,8 +71,11 @@ class ReconstructionFolder:
     def __init__(self, directory):
         self.dir = Path(directory)
 
+    def _path(self, rel: str) -> Path:
+        return inside(self.dir, rel)
+
     def _npz(self, name: str, **arrays) -> None:
-        with atomic_path(self.dir / name, suffix=".npz") as tmp:
+        with atomic_path(self._path(name), suffix=".npz") as tmp:
             np.savez(tmp, **arrays)
 
     def write_alignment(self, alignment) -> None:
@@ -82,33 +91,32 @@ class ReconstructionFolder:
     def write_latent(self, latent: np.ndarray, grid_shape, passes: dict) -> None:
         from reconstruction.stages.latents import write_latent_exr
 
-        write_latent_exr(self.dir / LATENT, latent, grid_shape)
+        write_latent_exr(self._path(LATENT), latent, grid_shape)
         self._npz(LATENT_PASSES, **passes)
 
     def write_maps(self, maps) -> None:
         from twin.materials.samples import write_maps
 
-        write_maps(maps, self.dir / MAPS)
+        write_maps(maps, self._path(MAPS))
 
     def _files(self) -> list[str]:
-        return sorted(p.relative_to(self.dir).as_posix() for p in self.dir.rglob("*")
-                      if p.is_file() and p.name != SUMMARY)
+        return [rel for rel in files_below(self.dir) if rel != SUMMARY]
 
     def write_summary(self, summary: dict) -> None:
         """The summary, with the checksums of every file written before it (so: last)."""
-        files = {rel: file_sha256(self.dir / rel) for rel in self._files()}
+        files = {rel: file_sha256(self._path(rel)) for rel in self._files()}
         doc = {"format": FORMAT_NAME, "version": FORMAT_VERSION, **summary, "files": files}
-        write_bytes_atomic(self.dir / SUMMARY, json.dumps(doc, indent=1).encode())
+        write_bytes_atomic(self._path(SUMMARY), json.dumps(doc, indent=1).encode())
 
     def verify(self) -> list[str]:
         """Files that are missing, changed or not listed (empty: a finished, intact reconstruction). A folder
         without a readable summary raises ValueError."""
         listed = self.summary().get("files", {})
-        bad = [rel for rel, h in listed.items() if not (self.dir / rel).is_file() or file_sha256(self.dir / rel) != h]
+        bad = [rel for rel, h in listed.items() if not self._path(rel).is_file() or file_sha256(self._path(rel)) != h]
         return sorted(bad + [rel for rel in self._files() if rel not in listed])
 
     def summary(self) -> dict:
-        path = self.dir / SUMMARY
+        path = self._path(SUMMARY)
         try:
             doc = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -120,7 +128,7 @@ class ReconstructionFolder:
     # --- stages (module docstring) ---------------------------------------------------------------------
     def _stages(self) -> dict:
         try:
-            return json.loads((self.dir / STAGES).read_text())
+            return json.loads(self._path(STAGES).read_text())
         except (OSError, json.JSONDecodeError, UnicodeDecodeError):
             return {}
 
@@ -133,23 +141,23 @@ class ReconstructionFolder:
         files = rec.get("files", {})
         if sorted(files) != sorted(STAGE_FILES[stage]):
             return None
-        if any(not (self.dir / f).is_file() or file_sha256(self.dir / f) != h for f, h in files.items()):
+        if any(not self._path(f).is_file() or file_sha256(self._path(f)) != h for f, h in files.items()):
             return None
         return rec.get("extra", {})
 
     def record_stage(self, stage: str, key: str, extra: dict) -> None:
         """Mark `stage` finished with `key` (its files written before), with the sha256 of its files."""
         doc = self._stages()
-        doc[stage] = {"key": key, "files": {f: file_sha256(self.dir / f) for f in STAGE_FILES[stage]}, "extra": extra}
-        write_bytes_atomic(self.dir / STAGES, json.dumps(doc, indent=1).encode())
+        doc[stage] = {"key": key, "files": {f: file_sha256(self._path(f)) for f in STAGE_FILES[stage]}, "extra": extra}
+        write_bytes_atomic(self._path(STAGES), json.dumps(doc, indent=1).encode())
 
     def forget_stage(self, stage: str) -> None:
         """Remove a stage's record and files (an unfinished stage's state once the stage has finished)."""
         doc = self._stages()
         if doc.pop(stage, None) is not None:
-            write_bytes_atomic(self.dir / STAGES, json.dumps(doc, indent=1).encode())
+            write_bytes_atomic(self._path(STAGES), json.dumps(doc, indent=1).encode())
         for f in STAGE_FILES[stage]:
-            (self.dir / f).unlink(missing_ok=True)
+            self._path(f).unlink(missing_ok=True)
 
     def link_stage(self, stage: str, dest: "ReconstructionFolder") -> None:
         """Hard-link the stage's files into `dest` (copied where the file system has no hard links)."""
@@ -157,22 +165,22 @@ class ReconstructionFolder:
 
         for f in STAGE_FILES[stage]:
             try:
-                os.link(self.dir / f, dest.dir / f)
+                os.link(self._path(f), dest._path(f))
             except OSError:
-                shutil.copy2(self.dir / f, dest.dir / f)
+                shutil.copy2(self._path(f), dest._path(f))
 
     def alignment(self, info: dict):
         """The alignment written by write_alignment, with its `info` (kept in the stage record)."""
         from reconstruction.stages.alignment import Alignment
 
-        with np.load(self.dir / ALIGNMENT, allow_pickle=False) as z:
+        with np.load(self._path(ALIGNMENT), allow_pickle=False) as z:
             return Alignment(z["map"], z["homography"], info)
 
     def measurements(self):
         """The measurements written by write_measurements."""
         from reconstruction.stages.extraction import Measurements, TextureGrid
 
-        with np.load(self.dir / MEASUREMENTS, allow_pickle=False) as z:
+        with np.load(self._path(MEASUREMENTS), allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
         res, size = a.pop("grid")
         a.pop("learned")  # kept for readers of the file; Measurements derives it from the photos
@@ -180,7 +188,7 @@ class ReconstructionFolder:
 
     def latent_passes(self) -> dict:
         """pass0 ... pass3 -> (N, 72) latents, as write_latent wrote them."""
-        with np.load(self.dir / LATENT_PASSES, allow_pickle=False) as z:
+        with np.load(self._path(LATENT_PASSES), allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
 
     def write_state(self, stage: str, state: dict) -> None:
@@ -204,7 +212,7 @@ class ReconstructionFolder:
     def state(self, stage: str) -> dict:
         """The state written by write_state."""
         _partial(stage)
-        with np.load(self.dir / STAGE_FILES[stage][0], allow_pickle=False) as z:
+        with np.load(self._path(STAGE_FILES[stage][0]), allow_pickle=False) as z:
             state = json.loads(z["__meta__"].tobytes())
             for name in z.files:
                 if name != "__meta__":
@@ -218,10 +226,12 @@ class ReconstructionFolder:
     def maps(self):
         from twin.materials.samples import read_maps
 
-        return read_maps(self.dir / MAPS)
+        folder = self._path(MAPS)
+        files_below(folder)  # a link inside maps/ is refused too
+        return read_maps(folder)
 
     def latent(self) -> np.ndarray:
         """(R, C, 72) float32 final latents."""
         from reconstruction.stages.latents import read_latent_exr
 
-        return read_latent_exr(self.dir / LATENT)
+        return read_latent_exr(self._path(LATENT))

@@ -14,15 +14,18 @@ to `reconstruction.evaluation.validation`).
                        (ReconstructConfig.spill_ratio, spill_texels; ours, docs/accuracy.md)
 
 The output folder is reconstruction.output.ReconstructionFolder (its file names live there alone); an existing
-path that is not one, or an output inside the capture, is refused before any work (`check_output`). Stages 1, 2
-and 4 are kept as they finish, so a killed or failed run, started again with the same capture and settings,
-resumes after the last one finished (reconstruction.output's stage folder).
+path that is not one, or an output inside the capture, is refused before any work (`check_output`); an output that
+is a symbolic link (a folder on a scratch disk) is written where it points. Stages 1, 2 and 4 are kept as they
+finish, so a killed or failed run, started again with the same capture and settings, resumes after the last one
+finished (reconstruction.output's stage folder). One run at a time holds the stage folder's lock (twin.lock); a run
+refused it changes nothing there.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -139,40 +142,35 @@ def check_output(out: Path, capture: Path) -> None:
 
 
 def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig(), *, progress: bool = True,
-                rig=None) -> Reconstruction:
-    """Run the pipeline on a capture folder into `output` (module docstring)."""
-    from twin.atomic import atomic_folder
+                rig=None, break_lock: bool = False) -> Reconstruction:
+    """Run the pipeline on a capture folder into `output` (module docstring). `break_lock`: take the stage folder's
+    lock that another host recorded (twin.lock)."""
+    from twin.atomic import atomic_folder, remove_leftovers
     from twin.capture.session import CaptureSession
-
-    import fcntl
-    import os
-    import re
-    import shutil
+    from twin.lock import FolderLock
+    from twin.paths import files_below, inside
 
     session, out = CaptureSession.open(capture), Path(output)
     check_output(out, session.dir)
     if rig is None:
         rig = session.rig()
-    stages = ReconstructionFolder(stages_folder(out))
-    stages.dir.mkdir(parents=True, exist_ok=True)
-    lock = os.open(stages.dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    target = Path(os.path.realpath(out)) if out.is_symlink() else out
+    # the stage folder is no link, nor is anything in it: refused before the lock, so a refused run leaves it as it is
+    stages = ReconstructionFolder(inside(target.parent, stages_folder(target).name))
+    files_below(stages.dir)
+    lock = FolderLock(stages.dir, "another reconstruction", shown=out).acquire(break_lock)
+    finished = False
     try:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ValueError(f"{out} is being reconstructed by another process; wait for it or choose another "
-                             "folder") from None
-        # a killed run leaves its half-built folder (twin.atomic: .OUT.XXXXXXXX); the lock says it is nobody's now
-        for p in out.parent.glob(f".{out.name}.*"):
-            if re.fullmatch(rf"\.{re.escape(out.name)}\.[A-Za-z0-9_]{{8}}", p.name) and p.is_dir():
-                shutil.rmtree(p, ignore_errors=True)
-        with atomic_folder(out, overwrite=True) as tmp:  # a failed run leaves the previous folder (or none)
+        remove_leftovers(stages.dir)  # a killed run's half-built OUT and temporary files (the lock is ours now)
+        # a failed run leaves the previous folder (or none)
+        with atomic_folder(target, overwrite=True, scratch=stages.dir) as tmp:
             recon = _reconstruct_into(ReconstructionFolder(tmp), stages, session, rig, config, progress)
-        shutil.rmtree(stages.dir, ignore_errors=True)  # OUT holds its files now (hard links)
+        finished = True
     finally:
-        os.close(lock)
-        if not (stages.dir / STAGES).exists():  # nothing finished to resume from
-            shutil.rmtree(stages.dir, ignore_errors=True)
+        if finished or not (stages.dir / STAGES).exists():  # OUT holds the stages' files now, or none was finished
+            lock.remove_folder()
+        else:
+            lock.release()
     recon.directory = out
     return recon
 

@@ -18,7 +18,7 @@ Sub-packages, one per physical thing (docs/architecture.md has the picture):
     twin.design     figures of merit of capture designs (noise, multiplexing gain, device costs, design files)
     twin.view       the pyvista view of the rig, cross-image plots
 Beside them: the twin's commands (cli.py), its self-checks (checks.py), benchmarks (bench.py), batches on Ray
-(batch.py) and atomic file writes (atomic.py).
+(batch.py), atomic file writes (atomic.py), the folders' locks (lock.py) and contained paths (paths.py).
 """
 from __future__ import annotations
 

@@ -2,11 +2,15 @@
 A reader (or a killed writer) sees either the old file or the complete new one, never half of it. `durable=False`
 skips the fsync: the rename is still atomic for readers and killed writers, but after a power loss the file may
 hold less than was written, so only files whose checksum is verified before use may be written so (a capture's
-photos: CaptureSession.photo_done re-takes a photo whose files fail)."""
+photos: CaptureSession.photo_done re-takes a photo whose files fail).
+
+A killed writer leaves its temporaries behind under names of their own (`is_leftover`), which the next writer of the
+folder removes (`remove_leftovers`), and nothing else."""
 from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import tempfile
 from contextlib import contextmanager
@@ -58,20 +62,22 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes, durable: bool = Tru
 
 
 @contextmanager
-def atomic_folder(path: str | os.PathLike, overwrite: bool = False):
-    """Yield a temporary folder beside `path` to fill; on success it replaces `path` (the old folder is
-    moved aside, the new one renamed in, the old one deleted, and put back if the rename fails); on
-    error it is deleted. A reader sees the old folder or the complete new one, never a mix."""
+def atomic_folder(path: str | os.PathLike, overwrite: bool = False, scratch: str | os.PathLike | None = None):
+    """Yield a temporary folder to fill; on success it replaces `path` (the old folder is moved aside, the new
+    one renamed in, the old one deleted, and put back if the rename fails); on error it is deleted. A reader
+    sees the old folder or the complete new one, never a mix. The temporary and the old folder are kept in
+    `scratch` (default: beside `path`; on the same file system, for the renames), where a killed run leaves them."""
     dest = Path(path)
     if dest.exists() and not overwrite:
         raise FileExistsError(f"{dest} exists; pass overwrite=True (--force) to replace it")
     dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    scratch = dest.parent if scratch is None else Path(scratch)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=scratch))
     os.chmod(tmp, 0o755)  # mkdtemp makes it private; these are ordinary folders
     try:
         yield tmp
         if dest.exists():
-            old = dest.with_name(f".{dest.name}.old-{os.getpid()}")
+            old = scratch / f".{dest.name}.old-{os.getpid()}"
             os.rename(dest, old)
             try:
                 os.rename(tmp, dest)
@@ -84,3 +90,30 @@ def atomic_folder(path: str | os.PathLike, overwrite: bool = False):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+# `.NAME.XXXXXXXX[SUFFIX]`: atomic_path's file (tempfile's eight random characters; SUFFIX is NAME's own) or
+# atomic_folder's folder (no suffix); `.NAME.old-PID`: the folder atomic_folder is replacing
+_LEFTOVER = re.compile(r"\.(?P<name>.+)\.(?:[a-z0-9_]{8}(?P<suffix>\.[^.]+)?|old-\d+)")
+
+
+def is_leftover(name: str) -> bool:
+    """Whether `name` is one this module gives its temporaries (what a killed writer leaves)."""
+    m = _LEFTOVER.fullmatch(name)
+    return m is not None and m["suffix"] in (None, Path(m["name"]).suffix)
+
+
+def remove_leftovers(folder: str | os.PathLike) -> None:
+    """Remove the temporaries a killed writer left below `folder` (is_leftover), and nothing else: a symbolic
+    link is never one, and is neither followed nor removed. The caller holds the folder's lock (twin.lock), so
+    no writer is still using them."""
+    todo = [Path(folder)]
+    while todo:
+        with os.scandir(todo.pop()) as entries:
+            for e in entries:
+                if e.is_symlink():
+                    continue
+                if is_leftover(e.name):
+                    shutil.rmtree(e.path) if e.is_dir(follow_symlinks=False) else os.unlink(e.path)
+                elif e.is_dir(follow_symlinks=False):
+                    todo.append(Path(e.path))

@@ -1,6 +1,6 @@
 """The twin's sub-commands of `hemicube` (registered by the front, hemicube.cli): rig, show, capture,
 capture-many, controller, samples, patterns, and the twin's benchmarks (bench lumitexel, capture, led-link,
-resume, camera-faults). Options and printing only: the work is in the modules each command calls."""
+resume, camera-faults, metering-faults). Options and printing only: the work is in the modules each command calls."""
 from __future__ import annotations
 
 import json
@@ -121,7 +121,8 @@ def cmd_capture(args) -> int:
     devices = {k: v for k, v in devices.items() if v is not None}  # the simulator refuses any
     out = capture(rig, args.sample, args.output, seed=args.seed, backend=args.backend, device=args.device,
                   resolution=args.resolution, learned=learned, progress=not args.no_progress, devices=devices,
-                  truth=_rig_arg(args.truth) if args.truth else None, frames=args.frames)
+                  truth=_rig_arg(args.truth) if args.truth else None, frames=args.frames,
+                  break_lock=args.break_lock)
     bad = verify(out)
     if bad:
         print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)
@@ -155,7 +156,7 @@ def cmd_bench(args) -> int:
     from twin.bench import bench_capture, bench_exit, bench_lumitexel
     from twin.capture import reliability
 
-    if args.bench_command in ("led-link", "resume", "camera-faults"):
+    if args.bench_command in ("led-link", "resume", "camera-faults", "metering-faults"):
         import tempfile
 
         work = args.workdir or tempfile.mkdtemp(prefix=f"hemicube-bench-{args.bench_command}-")
@@ -164,6 +165,8 @@ def cmd_bench(args) -> int:
                                              args.timeout, args.delay, args.link, args.seed, work)
         elif args.bench_command == "resume":
             res = reliability.bench_resume(args.kills, args.seed, work)
+        elif args.bench_command == "metering-faults":
+            res = reliability.bench_metering_faults(args.injections, args.rate, args.seed, work, args.scale)
         else:
             res = reliability.bench_camera_faults(args.faults, args.seed, work)
         print(json.dumps({**res, "workdir": str(work)}, indent=2))
@@ -190,6 +193,7 @@ def _pattern_image_args(s) -> None:
 def register(sub) -> None:
     """Add the twin's sub-commands to the front's parser."""
     from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
+    from twin.lock import BREAK_LOCK_HELP
 
     rig = sub.add_parser("rig", help="inspect, import and export rigs").add_subparsers(dest="rig_command",
                                                                                        required=True)
@@ -226,7 +230,7 @@ def register(sub) -> None:
     s.add_argument("--backend", default="sim", help="device backend: sim (the simulator) or hardware (the LED "
                    "controller and pypylon cameras) (default: %(default)s)")
     s.add_argument("--led", help="hardware: the LED controller's pyserial URL (/dev/ttyACM0, socket://HOST:PORT "
-                   "of `hemicube controller serve`, a pty path)")
+                   "of `hemicube controller serve`, a pty path); a token it asks for: $HEMICUBE_LED_TOKEN")
     s.add_argument("--led-baud", type=int, help="hardware: baud rate of a UART link (USB CDC and sockets ignore "
                    "it; default 2000000)")
     s.add_argument("--cameras", choices=("emulated", "basler"), help="hardware: pylon's camera emulation fed by "
@@ -249,6 +253,7 @@ def register(sub) -> None:
     s.add_argument("--patterns", help="pattern file with the learned frames, K (+, -) pairs (a `hemicube train` "
                    "run's patterns.npz; default: the rig's own 64, else a seeded placeholder)")
     s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
+    s.add_argument("--break-lock", action="store_true", help=BREAK_LOCK_HELP)
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     s.set_defaults(func=cmd_capture)
 
@@ -272,7 +277,7 @@ def register(sub) -> None:
     s.set_defaults(func=led_emulator.run)
     s = ctl.add_parser("info", help="what a controller reports: LEDs, slots, boot id, displayed pattern (JSON)")
     s.add_argument("--led", required=True, help="the controller's pyserial URL: /dev/ttyACM0, socket://HOST:PORT, "
-                   "a pty path")
+                   "a pty path; a token it asks for: $HEMICUBE_LED_TOKEN")
     s.add_argument("--baud", type=int, default=2_000_000, help="baud rate of a UART link (ignored by USB CDC and "
                    "sockets) (default: %(default)s)")
     s.set_defaults(func=cmd_controller_info)
@@ -345,6 +350,16 @@ def register_bench(bench) -> None:
                    "(default: %(default)s)")
     s.add_argument("--seed", type=int, default=0, help="seed of the faults (default: %(default)s)")
     s.add_argument("-o", "--workdir", help="folder for the captures (default: a new temporary folder)")
+    s.set_defaults(func=cmd_bench)
+    s = bench.add_parser("metering-faults", help="mini-rig photos with the LED controller reset before their "
+                         "metering, each checked against the simulator's (docs/reliability.md)")
+    s.add_argument("--injections", type=int, default=100, help="photos the fault must hit (default: %(default)s)")
+    s.add_argument("--rate", type=float, default=0.25, help="share of pattern latches after which the controller "
+                   "browns out (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the faults (default: %(default)s)")
+    s.add_argument("--scale", type=float, default=1.0, help="resize the cameras by this factor, e.g. 0.5 for a "
+                   "quick run (default: %(default)s)")
+    s.add_argument("-o", "--workdir", help="folder for the emulator's log (default: a new temporary folder)")
     s.set_defaults(func=cmd_bench)
 
 

@@ -64,7 +64,7 @@ def test_killed_while_fitting_resumes_after_fine_tuning(validate_dir, run_a, tmp
     proc.wait()
     assert _stage_names(stages) == {"alignment", "extraction", "finetune"}, "the kill must land after fine-tuning"
     assert not out.exists()  # nothing half-built where the result goes
-    leftovers = [p for p in out.parent.iterdir() if p.name.startswith(".B.") and p != stages]
+    leftovers = [p for p in stages.iterdir() if p.name.startswith(".B.")]  # atomic_folder's scratch is the stage folder
     assert leftovers, "the killed run's half-built folder is there to be cleaned"
     mtimes = {p.name: p.stat().st_mtime_ns for p in stages.iterdir()}
     kept = json.loads((stages / "stages.json").read_text())

@@ -3,41 +3,21 @@ a user's folder, a file, the capture being read and a folder inside it are refus
 anything is written, and stay as they were; an empty folder is filled."""
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
-
-import pytest
 
 import hemicube.cli
 from twin.capture.session import CaptureSession
 
-
-def _digest(root: Path) -> str:
-    """sha256 over every path and file below `root`, hidden ones included."""
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*")):
-        h.update(str(p.relative_to(root)).encode())
-        if p.is_file():
-            h.update(p.read_bytes())
-    return h.hexdigest()
-
-
-@pytest.fixture(scope="module")
-def capture(tmp_path_factory) -> Path:
-    """A real capture of the mini rig, small and with one frame an exposure: only its folder matters here."""
-    cap = tmp_path_factory.mktemp("rel") / "capture"
-    assert hemicube.cli.main(["capture", "--rig", "mini", "--sample", "ramps", "--seed", "1", "--frames", "1",
-                              "--resolution", "16", "--no-progress", "-o", str(cap)]) == 0
-    return cap
+from tests.reliability.conftest import digest
 
 
 def _refused(capsys, capture: Path, out: Path, message: str) -> None:
-    before_cap = _digest(capture)
+    before_cap = digest(capture)
     rc = hemicube.cli.main(["reconstruct", str(capture), "-o", str(out), "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
     assert len(err) == 1 and message in err[0] and str(out) in err[0], err
-    assert _digest(capture) == before_cap
+    assert digest(capture) == before_cap
     assert CaptureSession.open(capture).verify() == []
     # nothing written beside the output either: no stage folder, no temporary or hidden copy
     assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.")]

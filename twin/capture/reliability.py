@@ -7,6 +7,8 @@ figures), each printed as JSON by `hemicube bench ...`:
     resume          a mini-rig capture over the emulated devices SIGKILLed at random points and resumed each
                     time: it completes, no photo lost, doubled or mismatched, photos equal an uninterrupted run's
     camera-faults   a capture with failed buffers, disconnects and stray triggers injected into the cameras
+    metering-faults the controller reset right after latching a pattern, before the photo's metering, until a
+                    number of photos were hit: each retaken and equal to the simulator's, or refused by name
 
 The captures compare against a simulator capture of the same rig, sample and seed, made once in the work
 folder (`reference`).
@@ -16,10 +18,12 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -214,3 +218,107 @@ def bench_camera_faults(spec: str = "failed=0.02,disconnect=0.005,stray=0.02", s
         proc.wait(60)
     return {"benchmark": "camera-faults", "faults": spec, "injected": faults.counts,
             "wall_s": round(time.perf_counter() - t0, 1), **check_capture(out, ref)}
+
+
+def _new_events(log: Path, offset: int) -> tuple[list[dict], int]:
+    """The emulator log's whole lines after byte `offset`, and the offset after them."""
+    with open(log, "rb") as f:
+        f.seek(offset)
+        data = f.read()
+    whole = data[:data.rfind(b"\n") + 1]
+    return [json.loads(line) for line in whole.splitlines()], offset + len(whole)
+
+
+def bench_metering_faults(injections: int = 100, rate: float = 0.25, seed: int = 0, workdir=None,
+                          scale: float = 1.0) -> dict:
+    """A controller reset during the metering, injected until `injections` photos were hit: the emulated
+    controller browns out right after latching a pattern (`brownout=RATE`, twin.capture.backends.faults), so
+    the host's next command, the photo's metering, finds the LEDs off. The mini plan's photos in turn (from its
+    start again when it is done), each taken through the capture loop (twin.capture.runner.photos) over the
+    emulated devices and compared, raw frames and HDR photo byte for byte, with the simulator's. A photo hit
+    (one brownout or more while it was taken, from the emulator's log) is completed by retaking when it was
+    retaken, kept and equals the simulator's; refused when the capture loop stopped at it by name. A photo not
+    hit must be kept, equal, without a retake. `scale` resizes the cameras' images (0.5: a quarter of the rays to
+    render, for a quick run)."""
+    import hashlib
+
+    from twin.capture.backends.led_emulator import spawn
+    from twin.capture.plan import CaptureError, build_patterns, paper_plan
+    from twin.capture.runner import SAMPLE_RESOLUTION, open_backends, photos, prepare
+    from twin.materials.samples import load_sample
+
+    def digest(raws, hdr) -> str:
+        return hashlib.sha256(raws.numpy().tobytes() + hdr["radiance"].numpy().tobytes()).hexdigest()
+
+    if not (0 < rate <= 1 and injections >= 1):  # else no photo would ever be hit: the run would not end
+        raise CaptureError(f"metering-faults needs --rate in (0, 1] and --injections >= 1, got {rate} and "
+                           f"{injections}")
+    workdir = Path(workdir or ".")
+    workdir.mkdir(parents=True, exist_ok=True)
+    rig = load_rig("mini")
+    if scale != 1.0:
+        rig = replace(rig, cameras={n: c.resized(scale) for n, c in rig.cameras.items()})
+    maps = load_sample(SAMPLE, resolution=SAMPLE_RESOLUTION)
+    patterns = build_patterns(rig)
+    plan = paper_plan(rig, patterns)
+    # camera by camera, the primary's photos of the sample first, their patterns rendered 64 at a time as they
+    # come: a render evaluates the LEDs a group of patterns lights once for the group (all of them for the
+    # learned patterns, a line's own for each line), so a short run renders the primary's learned ones only
+    order = sorted(plan, key=lambda p: (p.sample != "sample", p.camera_index, p.index))
+    faults = f"brownout={rate:g},seed={seed}"
+    log = workdir / "metering_led.jsonl"
+    log.unlink(missing_ok=True)
+    proc, url = spawn(rig.num_leds, faults=faults, log=log)
+    hit = {"photos": 0, "brownouts": 0, "completed_by_retaking": 0, "kept_without_a_retake": 0, "refused": 0}
+    clean = {"photos": 0, "retaken": 0, "refused": 0}
+    differing, retakes, refusals, reference, offset, taken, ready = 0, {}, [], {}, 0, 0, set()
+    t0 = time.perf_counter()
+    try:
+        with open_backends(rig, maps, "hardware", SEED, "cpu", {"led": url, "cameras": "emulated"}) as hw:
+            # the simulator's photos, from the twin that feeds the emulated cameras: one render of a pattern
+            # serves both (a simulator backend of the same rig, sample and seed, as `--backend sim` opens)
+            sim = {kind: backend.twin for kind, backend in hw.items()}
+            while hit["photos"] < injections:
+                at = taken % len(order)
+                photo = order[at]
+                taken += 1
+                if at not in ready:
+                    prepare(rig, hw, patterns, order[at:at + 64])
+                    ready.update(range(at, at + 64))
+                key = (photo.index, photo.camera_index)
+                if key not in reference:
+                    (_, raws, hdr, _), = photos(rig, sim, patterns, [photo], "cpu")
+                    reference[key] = digest(raws, hdr)
+                try:
+                    (_, raws, hdr, record), = photos(rig, hw, patterns, [photo], "cpu")
+                    kept, error = digest(raws, hdr), None
+                except CaptureError as e:
+                    kept, error, record = None, str(e), {}
+                events, offset = _new_events(log, offset)
+                brownouts = sum(e["event"] == "fault" and e["kind"] == "brownout" for e in events)
+                for reason in record.get("retakes", []):
+                    reason = re.sub(r"\d[\d.]*", "N", reason.split(" (")[0])  # without the CRC and figures
+                    retakes[reason] = retakes.get(reason, 0) + 1
+                differing += kept is not None and kept != reference[key]
+                if error is not None:
+                    refusals.append(error)
+                if brownouts:
+                    hit["photos"] += 1
+                    hit["brownouts"] += brownouts
+                    if error is not None:
+                        hit["refused"] += 1
+                    elif record.get("retakes"):
+                        hit["completed_by_retaking"] += kept == reference[key]
+                    else:
+                        hit["kept_without_a_retake"] += 1
+                else:
+                    clean["photos"] += 1
+                    clean["retaken"] += bool(record.get("retakes"))
+                    clean["refused"] += error is not None
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=60)
+    return {"benchmark": "metering-faults", "faults": faults, "camera_scale": scale, "photos": taken, "photos_hit": hit,
+            "completed_by_retaking_share": round(hit["completed_by_retaking"] / max(hit["photos"], 1), 4),
+            "photos_not_hit": clean, "accepted_photos_differing_from_the_simulator": differing,
+            "retakes_by_reason": retakes, "refusals": refusals, "wall_s": round(time.perf_counter() - t0, 1)}

@@ -2,7 +2,8 @@
 into a session folder (twin.capture.session), resuming a killed run there.
 
 `photos` is the capture itself: it renders every pending pattern of a camera in one pass, then takes each
-photo (meter, exposure bracket, raw frames, HDR merge) on the backend's device; a photo leaves the device
+photo (meter, exposure bracket, raw frames, HDR merge) on the backend's device; a photo whose bracket is
+implausible (twin.capture.plausibility) is taken again, then refused by name; a photo leaves the device
 only when `capture` writes its files. `hemicube bench capture` times the same generator.
 
 Files: a finished photo is copied to the host (`HostCopies`: on CUDA into reused page-locked buffers, the
@@ -20,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.capture.plan import (BRACKET, BRACKET_RATIO, DEFAULT_FRAMES, CaptureError, build_patterns, check_frames,
-                               exposure_frames, frame_id, paper_plan, photo_exposures)
-from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession
+from twin.capture.plan import (BRACKET, BRACKET_RATIO, DEFAULT_FRAMES, CaptureError, DeviceError, build_patterns,
+                               check_frames, exposure_frames, frame_id, paper_plan, photo_exposures)
+from twin.capture.plausibility import PHOTO_ATTEMPTS, judge_bracket
+from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession, photo_stem
 
 WRITERS = max(1, min(8, os.cpu_count() or 1))
 
@@ -70,41 +72,74 @@ def open_backends(rig, maps, backend: str, seed: int, device: str, devices: dict
     return open_named(backend, rig, maps, seed=seed, device=device, **devices)
 
 
+def prepare(rig, sims: dict, patterns, todo) -> None:
+    """Get the backends ready for the photos `todo`: every pattern they show, a camera's in one pass."""
+    from twin.capture.patterns import PatternSet
+
+    index = {n: k for k, n in enumerate(patterns.names)}
+    for kind in ("sample", "empty"):
+        for cam in rig.cameras:
+            need = sorted({index[p.pattern] for p in todo if p.camera == cam and p.sample == kind})
+            if need:
+                sims[kind].prepare(cam, PatternSet(patterns.levels[need], tuple(patterns.names[k] for k in need),
+                                                   rig.name))
+
+
 def photos(rig, sims: dict, patterns, todo, device: str, stage=None, frames: int = DEFAULT_FRAMES):
     """Take the photos `todo` (plan entries), each exposure of the bracket its exposure_frames(frames) times
     (twin.capture.plan): yields (photo, raws (n, H, W) uint16 Warp array, HDR merge
     (twin.camera.hdr.merge_hdr_device's dict), record), all on `device`.
-    `stage(name)`, when given, is a context manager around each stage ("render", "sensor", "hdr"): the bench's
-    timer."""
-    import warp as wp
-
+    A take whose bracket is implausible (twin.capture.plausibility.judge_bracket) is taken again, at most
+    PHOTO_ATTEMPTS times in all, the reasons kept in the record's "retakes"; then CaptureError names the photo.
+    `stage(name)`, when given, is a context manager around each stage ("render", "sensor", "check", "hdr"): the
+    bench's timer."""
     from twin.camera.hdr import merge_hdr_device
-    from twin.capture.patterns import PatternSet
 
     stage = stage or (lambda name: nullcontext())
     index = {n: k for k, n in enumerate(patterns.names)}
     with stage("render"):
-        for kind in ("sample", "empty"):  # every pending pattern of a camera in one pass
-            for cam in rig.cameras:
-                need = sorted({index[p.pattern] for p in todo if p.camera == cam and p.sample == kind})
-                if need:
-                    sims[kind].prepare(cam, PatternSet(patterns.levels[need],
-                                                       tuple(patterns.names[k] for k in need), rig.name))
+        prepare(rig, sims, patterns, todo)
     for photo in todo:
-        sim = sims[photo.sample]
         cam = rig.camera(photo.camera)
-        with stage("sensor"):
-            shown = sim.show(patterns.levels[index[photo.pattern]])
-            exposures = photo_exposures(sim.meter(photo.camera), cam.sensor, frames)
-            ids = [frame_id(photo, j) for j in range(len(exposures))]
-            raws = wp.empty((len(exposures), cam.height, cam.width), dtype=wp.uint16, device=device)
-            exposures, grabbed = sim.grab_bracket(photo.camera, exposures, ids, raws)  # as the camera applied
+        name = photo_stem(photo.index, photo.camera_index)
+        refused = []  # the reasons of the takes refused before the one kept, theirs included
+        for _ in range(PHOTO_ATTEMPTS):
+            try:
+                raws, exposures, ids, shown, grabbed = _take(sims[photo.sample], cam, photo,
+                                                             patterns.levels[index[photo.pattern]], device, frames,
+                                                             stage)
+            except DeviceError as e:  # the devices' retries are spent: stop at this photo, by name
+                raise DeviceError(f"photo {name}: {e}") from None
+            with stage("check"):
+                reason = judge_bracket(raws, exposures, cam.sensor).reason
+            if reason is None:
+                break
+            refused += grabbed.get("retakes", []) + [f"implausible: {reason}"]
+        else:
+            raise CaptureError(f"photo {name} ({photo.pattern}, camera {photo.camera}) is implausible after "
+                               f"{PHOTO_ATTEMPTS} takes: {reason}")
         with stage("hdr"):
             hdr = merge_hdr_device(raws, exposures, cam.sensor)
             record = {"pattern": photo.pattern, "camera": photo.camera, "sample": photo.sample,
                       "exposures_s": exposures, "frames": ids,
                       "saturated_pixels": int(hdr["saturated_count"].numpy()[0]), **shown, **grabbed}
+        if refused:
+            record["retakes"] = refused + record.get("retakes", [])
         yield photo, raws, hdr, record
+
+
+def _take(sim, cam, photo, levels, device, frames, stage):
+    """One take of a photo: light the pattern, meter, grab the bracket. Returns (raws (n, H, W) uint16 Warp
+    array, the exposures as the camera applied them, frame ids, what `show` and `grab_bracket` report)."""
+    import warp as wp
+
+    with stage("sensor"):
+        shown = sim.show(levels)
+        exposures = photo_exposures(sim.meter(photo.camera), cam.sensor, frames)
+        ids = [frame_id(photo, j) for j in range(len(exposures))]
+        raws = wp.empty((len(exposures), cam.height, cam.width), dtype=wp.uint16, device=device)
+        exposures, grabbed = sim.grab_bracket(photo.camera, exposures, ids, raws)  # as the camera applied
+    return raws, exposures, ids, shown, grabbed
 
 
 SAMPLE_RESOLUTION = 128  # texels per side of a built-in sample's maps when a capture renders it
@@ -136,7 +171,7 @@ def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", res
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
             resolution: int = SAMPLE_RESOLUTION, learned=None, progress: bool = True, devices: dict | None = None,
-            truth=None, frames: int = DEFAULT_FRAMES) -> Path:
+            truth=None, frames: int = DEFAULT_FRAMES, break_lock: bool = False) -> Path:
     """Run the plan into `output` (resuming a killed run there), each exposure taken `frames` times, the shortest
     twice as often (the HDR merge averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices`
     are the hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
@@ -145,7 +180,8 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     `rig`'s device (Rig.layout_digest): differ only in how the cameras record light, in the cameras' lenses and
     poses and in the LEDs' positions, normals, profiles and intensities. Everything that can
     be checked, the devices included, is checked before the folder is made; a folder this call made is removed
-    again when it fails before its first photo."""
+    again when it fails before its first photo. `break_lock`: take the folder's lock that another host recorded
+    (twin.lock)."""
     from twin.materials.samples import load_sample
     from twin.optics.inputs import check_device
 
@@ -162,7 +198,7 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
                                             learned=learned, cameras=devices.get("cameras"), truth=truth,
                                             frames=frames)
     with open_backends(rig, maps, backend, seed, device, devices, truth) as sims, \
-            CaptureSession.create(output, header) as session:
+            CaptureSession.create(output, header, break_lock) as session:
         session.write_setup(patterns, rig, maps)
         for c, cam in enumerate(rig.cameras):
             if maps is not None and not session.pixel_texel_done(c):

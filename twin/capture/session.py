@@ -9,19 +9,20 @@ reconstruction and validation read it through `CaptureSession.open`; no other mo
     raw/img{k:05d}_cam{c:02d}_e{j}.BayerRG12p   raw frames, GenICam PFNC BayerRG12p (12-bit packed)
     ground_truth/maps/          the sample's true SVBRDF maps (OpenSVBRDF contract; a twin capture only)
     ground_truth/pixel_texel_cam{c:02d}.npy   (H, W, 2) float32 true texel (row, col) of each pixel, NaN off it
-    .lock                       held (flock) by the one writer while a capture runs
+    .lock                       the one writer's lock while a capture runs (twin.lock)
 
 Writing: every file is written atomically, and the manifest (rewritten atomically after each photo) lists a
 file only once it is complete, so a killed capture resumes: re-running removes the temporary files the killed
-writer left, verifies the listed files, keeps the verified photos and takes the rest. A folder made with another rig, sample, seed or plan is refused, and so
-is a second writer while the first runs (the lock is the kernel's: it goes with the process, killed or not).
+writer left (twin.atomic's, and nothing else), verifies the listed files, keeps the verified photos and takes the
+rest. A folder made with another rig, sample, seed or plan is refused, and so is a second writer while the first
+runs (twin.lock: a killed writer's lock is stale, one recorded by another host is taken with --break-lock).
 A folder this writer created is removed again when the capture fails before its first photo.
 Reading: each file is checked against the manifest's sha256 as it is read; the first that fails is named.
+Both: the manifest's paths are checked to lie inside the folder before anything is opened, and a symbolic link
+inside the folder is refused by name, never followed (twin.paths).
 """
 from __future__ import annotations
 
-import errno
-import fcntl
 import hashlib
 import json
 import os
@@ -32,8 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
+from twin.atomic import atomic_path, file_sha256, remove_leftovers, write_bytes_atomic
 from twin.capture.plan import CaptureError, Photo, check_frames
+from twin.lock import LOCK, FolderLock, LockError
+from twin.paths import files_below, inside, relative_path
 
 FORMAT_NAME = "hemicube-capture"
 FORMAT_VERSION = 1
@@ -41,7 +44,6 @@ MANIFEST = "manifest.json"
 PATTERNS = "patterns.npz"
 RIG = "rig"
 MAPS = "ground_truth/maps"
-LOCK = ".lock"
 VERIFIERS = max(1, min(8, os.cpu_count() or 1))  # threads that checksum a capture's files (verify)
 
 
@@ -72,6 +74,8 @@ def _differing(old: dict, header: dict) -> list[str]:
 
 
 def _read_manifest(directory: Path) -> dict:
+    """The manifest of a capture folder holding no symbolic link, its listed paths checked (_check_listed)."""
+    files_below(directory, CaptureError)
     path = directory / MANIFEST
     if not path.is_file():
         raise CaptureError(f"{directory}: not a capture folder (no {MANIFEST})")
@@ -84,7 +88,18 @@ def _read_manifest(directory: Path) -> dict:
     if doc.get("version") != FORMAT_VERSION:
         raise CaptureError(f"{path}: unknown capture format version {doc.get('version')!r}; this twin reads "
                            f"version {FORMAT_VERSION}")
+    _check_listed(doc, path)
     return doc
+
+
+def _check_listed(doc: dict, path: Path) -> None:
+    """Every path the manifest lists (its files, each photo's files) lies inside the folder, or a CaptureError."""
+    files, photos = doc.get("files", {}), doc.get("photos", {})
+    if not (isinstance(files, dict) and isinstance(photos, dict)
+            and all(isinstance(r, dict) and isinstance(r.get("files", []), list) for r in photos.values())):
+        raise CaptureError(f"{path}: malformed manifest (its files and photos are not the maps this twin writes)")
+    for rel in [*files, *(f for r in photos.values() for f in r.get("files", []))]:
+        relative_path(rel, path, CaptureError)
 
 
 class CaptureSession:
@@ -95,7 +110,7 @@ class CaptureSession:
         self.header = header
         self.files: dict[str, str] = files
         self.photos: dict[str, dict] = photos
-        self._lock_fd: int | None = None
+        self._lock: FolderLock | None = None
         self._created = False
         self._mutex = threading.Lock()  # write_photo may run in several writer threads
 
@@ -140,13 +155,17 @@ class CaptureSession:
         doc = json.dumps({"header": self.header, "files": self.files}, sort_keys=True, default=str)
         return hashlib.sha256(doc.encode()).hexdigest()
 
+    def _path(self, rel: str) -> Path:
+        """The folder's file `rel`, reached through no symbolic link (twin.paths.inside)."""
+        return inside(self.dir, rel, CaptureError)
+
     def verified(self, rel: str) -> bool:
-        p = self.dir / rel
+        p = self._path(rel)
         return rel in self.files and p.is_file() and file_sha256(p) == self.files[rel]
 
     def _checked(self, rel: str) -> Path:
         """The path of a listed file whose bytes match the manifest, else a CaptureError naming it."""
-        path = self.dir / rel
+        path = self._path(rel)
         if rel not in self.files:
             raise CaptureError(f"{self.dir}: {rel} is not in the manifest (an incomplete capture? re-run "
                                "`hemicube capture` on the folder to finish it)")
@@ -163,7 +182,7 @@ class CaptureSession:
             raise CaptureError(f"{self.dir}: {absent}")
         for rel in listed:
             self._checked(rel)
-        return self.dir / folder
+        return self._path(folder)
 
     def verify(self) -> list[str]:
         """Listed files whose checksum does not match (empty when all verify), checked by VERIFIERS threads (sha256
@@ -235,8 +254,9 @@ class CaptureSession:
 
     # --- writing --------------------------------------------------------------------------------------
     @classmethod
-    def create(cls, directory, header: dict) -> "CaptureSession":
-        """Start or resume the capture `header` describes in `directory`, holding its lock until `close`."""
+    def create(cls, directory, header: dict, break_lock: bool = False) -> "CaptureSession":
+        """Start or resume the capture `header` describes in `directory`, holding its lock until `close`
+        (`break_lock`: take a lock that another host recorded, twin.lock)."""
         d = Path(directory)
         created = not d.exists()
         files, photos = {}, {}
@@ -249,47 +269,29 @@ class CaptureSession:
             files, photos = dict(old.get("files", {})), dict(old.get("photos", {}))
         elif d.exists() and any(p.name != LOCK for p in d.iterdir()):
             raise CaptureError(f"{d} exists and is not a capture folder; choose another folder")
-        d.mkdir(parents=True, exist_ok=True)
         session = cls(d, dict(header), files, photos)
         session._created = created
-        session._lock()
-        session._remove_leftovers()
+        try:
+            session._lock = FolderLock(d, "another capture").acquire(break_lock)
+        except LockError as e:
+            raise CaptureError(str(e)) from None
+        # a writer killed mid-write leaves its temporary files (never listed in the manifest); the lock is ours, so
+        # nobody else is writing them
+        remove_leftovers(d)
         if not (d / MANIFEST).exists():
             session.save()  # from here on the folder is a capture folder, resumable whatever is killed next
         return session
 
-    def _remove_leftovers(self) -> None:
-        """A writer killed mid-write leaves its temporary files (twin.atomic: '.NAME.XXXX', never listed in
-        the manifest); the lock is ours, so nobody else is writing them."""
-        for p in sorted(self.dir.rglob(".*"), reverse=True):
-            if p.name != LOCK and p.exists():
-                shutil.rmtree(p) if p.is_dir() else p.unlink()
-
-    def _lock(self) -> None:
-        fd = os.open(self.dir / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as e:
-            holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
-            os.close(fd)
-            if e.errno in (errno.EWOULDBLOCK, errno.EACCES):
-                raise CaptureError(f"{self.dir} is in use by another capture (pid {holder}); wait for it or "
-                                   "choose another folder") from None
-            raise
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
-        self._lock_fd = fd
-
     def close(self) -> None:
-        if self._lock_fd is not None:
-            os.close(self._lock_fd)  # releases the flock
-            self._lock_fd = None
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def discard_if_new(self) -> None:
         """After a failure: remove the folder when this writer created it and took no photo yet."""
+        if self._created and not self.photos and self._lock is not None:
+            self._lock.remove_folder()
         self.close()
-        if self._created and not self.photos:
-            shutil.rmtree(self.dir, ignore_errors=True)
 
     def __enter__(self):
         return self
@@ -302,12 +304,12 @@ class CaptureSession:
         return False
 
     def _write(self, rel: str, data: bytes) -> None:
-        write_bytes_atomic(self.dir / rel, data)
+        write_bytes_atomic(self._path(rel), data)
         self.files[rel] = hashlib.sha256(data).hexdigest()
 
     def _write_with(self, rel: str, writer) -> None:
         """`writer(tmp_path)` writes the file; it is renamed into place and checksummed."""
-        path = self.dir / rel
+        path = self._path(rel)
         with atomic_path(path) as tmp:
             writer(tmp)
         self.files[rel] = file_sha256(path)
@@ -319,10 +321,11 @@ class CaptureSession:
             return
         for r in listed:
             del self.files[r]
-        if (self.dir / folder).exists():
-            shutil.rmtree(self.dir / folder)
-        writer(self.dir / folder)
-        for f in sorted((self.dir / folder).iterdir()):
+        path = self._path(folder)
+        if path.exists():
+            shutil.rmtree(path)
+        writer(path)
+        for f in sorted(path.iterdir()):
             self.files[f"{folder}/{f.name}"] = file_sha256(f)
 
     def write_setup(self, patterns, rig, maps) -> None:
@@ -362,9 +365,9 @@ class CaptureSession:
         # time (docs/performance.md); the manifest that lists them is fsynced
         for j, raw in enumerate(raws):
             data = pack_bayer_rg12p(raw)
-            write_bytes_atomic(self.dir / _raw_file(i, c, j), data, durable=False)
+            write_bytes_atomic(self._path(_raw_file(i, c, j)), data, durable=False)
             done[_raw_file(i, c, j)] = hashlib.sha256(data).hexdigest()
-        path = self.dir / _photo_file(i, c)
+        path = self._path(_photo_file(i, c))
         # uncompressed: zip saves nothing on a noisy float32 photo (73.2 against 73.7 MB at 2664 x 2304) and costs
         # several times the write time and twice the read time (docs/performance.md, the capture with files written)
         write_rgb_exr(path, radiance, compression="none", durable=False)
@@ -376,7 +379,7 @@ class CaptureSession:
 
     def save(self) -> None:
         doc = {**self.header, **dict(zip(BODY, (self.photos, self.files)))}
-        write_bytes_atomic(self.dir / MANIFEST, json.dumps(doc, sort_keys=True, separators=(",", ":")).encode())
+        write_bytes_atomic(self._path(MANIFEST), json.dumps(doc, sort_keys=True, separators=(",", ":")).encode())
 
 
 def verify(directory) -> list[str]:

@@ -14,8 +14,9 @@ the simulator and the real hardware (a serial LED controller and Basler cameras)
                                                  exposure; `frames` are the plan's frame ids (the twin's noise)
 
 `sim` is the simulator (sim.py); `hardware` the LED controller and pypylon cameras (hardware.py, with
-led_host/led_protocol, pylon_cameras, and the devices' emulators led_emulator and faults). Add a backend as a
-module here and register how to open it in BACKENDS.
+led_host/led_protocol and led_auth, the TCP links' token handshake; pylon_cameras; and the devices' emulators
+led_emulator, with led_link, its TCP end, and faults). Add a backend as a module here and register how to open it
+in BACKENDS.
 """
 from contextlib import contextmanager
 

@@ -54,23 +54,29 @@ def parse_spec(text: str | None, option: str, kinds, numbers: dict[str, bool]) -
 
 @dataclass
 class FaultSpec:
-    """The LED link's faults: per-frame probabilities by kind, bit errors per byte, the delay, the seed."""
+    """The LED link's faults: per-frame probabilities by kind, bit errors per byte, the delay, the seed; and
+    `brownout`, the probability that latching a pattern browns the controller out: it acknowledges the SHOW,
+    then restarts (LEDs off, slots empty, a new boot id) before the host's next command, as a supply too weak
+    for the LEDs' switch-on current would. The capture's next command after a SHOW is its metering's."""
     rates: dict = field(default_factory=dict)
     flip: float = 0.0
     delay_s: float = 0.5
     seed: int = 0
+    brownout: float = 0.0
 
     @classmethod
     def parse(cls, text: str | None) -> "FaultSpec":
-        rates, values, seed = parse_spec(text, "--faults", FAULT_KINDS, {"flip": True, "delay_s": False})
+        rates, values, seed = parse_spec(text, "--faults", FAULT_KINDS,
+                                         {"flip": True, "delay_s": False, "brownout": True})
         for d in ("in", "out"):
             total = sum(p for k, p in rates.items() if d in FAULT_KINDS[k])
             if total > 1.0:
                 raise CaptureError(f"--faults: the per-frame probabilities of one direction sum to {total:g} > 1")
-        return cls(rates, values.get("flip", 0.0), values.get("delay_s", 0.5), seed)
+        return cls(rates, values.get("flip", 0.0), values.get("delay_s", 0.5), seed, values.get("brownout", 0.0))
 
     def __str__(self):
-        parts = [f"{k}={v:g}" for k, v in self.rates.items()] + ([f"flip={self.flip:g}"] if self.flip else [])
+        parts = ([f"{k}={v:g}" for k, v in self.rates.items()] + ([f"flip={self.flip:g}"] if self.flip else [])
+                 + ([f"brownout={self.brownout:g}"] if self.brownout else []))
         return ",".join(parts + [f"delay_s={self.delay_s:g}", f"seed={self.seed}"]) if parts else "none"
 
 
@@ -113,6 +119,14 @@ class Faults(_Picker):
 
     def pick(self, direction: str) -> str | None:
         return self._pick([k for k in self.rates if direction in FAULT_KINDS[k]], direction)
+
+    def brownout(self) -> bool:
+        """Whether the pattern just latched browns the controller out (drawn only when the spec has brownouts,
+        so that every other spec keeps its sequence of decisions)."""
+        if self.spec.brownout <= 0 or self._rng.random() >= self.spec.brownout:
+            return False
+        self.counts["brownout"] = self.counts.get("brownout", 0) + 1
+        return True
 
     def damage(self, wire: bytes, kind: str) -> bytes:
         """drop/corrupt one byte of a frame's encoded bytes (never its delimiter: bit errors cover that)."""

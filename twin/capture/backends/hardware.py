@@ -9,9 +9,10 @@ runs the same plan, session folder and resume.
                          twin: the photos equal `--backend sim`'s, byte for byte
 
 For each photo: `show` uploads and latches the pattern and keeps the controller's acknowledgement (its
-displayed CRC goes into the manifest); `grab_bracket` takes the exposure bracket as one grab session and keeps
-it only if, afterwards, the controller still displays that pattern under the same boot id (else it lights
-it again and retakes the bracket); the camera frame ids and any retakes go into the manifest.
+displayed CRC goes into the manifest); `meter` and `grab_bracket` keep the metering and the exposure bracket
+(one grab session) only if, afterwards, the controller still displays that pattern under the same boot id
+(else it lights it again and meters or takes the bracket again); the camera frame ids and any retakes go
+into the manifest.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections import Counter
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,6 +29,7 @@ import numpy as np
 from twin.capture.backends.led_protocol import crc32
 from twin.capture.backends.sim import SimBackend, check_levels
 from twin.capture.plan import CaptureError, DeviceError
+from twin.capture.plausibility import METER_ATTEMPTS
 
 CAMERA_KINDS = ("emulated", "basler")
 
@@ -51,6 +54,7 @@ class HardwareBackend:
         self._known: dict[int, np.ndarray] = {crc32(off.tobytes()): off}  # CRC -> levels, every pattern sent
         self._levels = None
         self._ack = None
+        self._retakes: list[str] = []  # why the meterings of the photo shown were discarded (see meter)
 
     def surfaces(self, camera: str):
         return self.twin.surfaces(camera) if self.twin is not None else None
@@ -68,6 +72,7 @@ class HardwareBackend:
             self.devices.prompt = None
         self._levels = levels
         self._known[crc32(levels.tobytes())] = levels
+        self._retakes = []
         self._ack = self.devices.led.show(levels)
         return {"led_crc": f"{self._ack.displayed_crc:08x}"}
 
@@ -81,19 +86,34 @@ class HardwareBackend:
                               "which the emulated cameras cannot render") from None
 
     def meter(self, camera: str) -> float:
-        if self.twin is None:
-            return self.devices.cameras[camera].meter(self.rig.camera(camera).sensor)
-        self.twin.show(self._displayed())
-        return self.twin.meter(camera)
+        """The brightest radiance in view, metered under the pattern the controller acknowledged: kept only when,
+        afterwards, the controller still displays it under the same boot id; else the pattern is lit again and
+        metered again, at most METER_ATTEMPTS times. Why: a controller reset between the SHOW and the metering
+        turns the LEDs off, so the photo would be metered in the dark and exposed for darkness, and its frames
+        taken once the bracket's check has lit the pattern again."""
+        for _ in range(METER_ATTEMPTS):
+            if self.twin is None:
+                value = self.devices.cameras[camera].meter(self.rig.camera(camera).sensor)
+            else:
+                self.twin.show(self._displayed())
+                value = self.twin.meter(camera)
+            reason = self._still_lit("metering")
+            if reason is None:
+                return value
+            self._retakes.append(reason)
+        why = Counter(self._retakes)
+        raise DeviceError(f"camera {camera}: the LEDs did not stay lit through the metering in {METER_ATTEMPTS} "
+                          f"attempts ({'; '.join(f'{n} x {r}' if n > 1 else r for r, n in why.items())})")
 
-    def _still_lit(self) -> str | None:
+    def _still_lit(self, during: str) -> str | None:
         """None when the controller still shows what it acknowledged; else light the pattern again and say why
-        the frames just taken cannot be kept."""
-        state = self.devices.led.query()
-        if (state.displayed_crc, state.boot_id) == (self._ack.displayed_crc, self._ack.boot_id):
+        what was just measured `during` (the metering, the bracket) cannot be kept."""
+        state, ack = self.devices.led.query(), self._ack
+        if (state.displayed_crc, state.boot_id) == (ack.displayed_crc, ack.boot_id):
             return None
         self._ack = self.devices.led.show(self._levels)
-        return f"the LEDs changed during the bracket (displayed {state.displayed_crc:08x})"
+        reset = ", the controller reset" if state.boot_id != ack.boot_id else ""
+        return f"the LEDs changed during the {during} (displayed {state.displayed_crc:08x}{reset})"
 
     def _render(self, camera: str, frames):
         """What the emulated camera is fed: the twin's raw frames of the acknowledged pattern."""
@@ -112,8 +132,10 @@ class HardwareBackend:
         import warp as wp
 
         render = self._render(camera, frames) if self.twin is not None else None
-        raws, applied, ids, retakes = self.devices.cameras[camera].grab_bracket(exposures_s, render, self._still_lit)
+        raws, applied, ids, retakes = self.devices.cameras[camera].grab_bracket(
+            exposures_s, render, lambda: self._still_lit("bracket"))
         wp.copy(out, wp.array(np.stack(raws), dtype=wp.uint16, device="cpu"))
+        retakes = self._retakes + retakes
         return applied, {"camera_run": self.devices.run, "camera_frames": ids,
                          **({"retakes": retakes} if retakes else {})}
 

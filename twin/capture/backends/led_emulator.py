@@ -6,7 +6,9 @@ request.
 twice); it is the reference a firmware writer can read beside the specification. `Faults` damages frames
 in either direction as `--faults` asks (grammar in `FaultSpec.parse` and the doc). `serve` runs the link:
 one host at a time, the controller's state kept across host connections (a real controller stays powered
-when the host's port closes), until SIGTERM/SIGINT.
+when the host's port closes), until SIGTERM/SIGINT. A TCP link listens on loopback unless `--allow-remote`
+says otherwise, which needs a token that every host must prove it holds (led_auth); a host that sends
+nothing for `--idle-timeout` seconds is disconnected, so that it cannot keep the others out.
 
 With `--log FILE` every injected fault, every pattern latched onto the LEDs and every reset is written as a
 JSON line, and at exit a summary with the counters and the CRCs of every frame the device sent undamaged,
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import random
 import select
@@ -26,8 +29,10 @@ import sys
 import time
 from collections import deque
 
-from twin.capture.backends.led_protocol import (LIST_ENTRY, MAX_CHUNK, MAX_PAYLOAD, NAK, NO_SLOT, READ_ARGS, REPLY,
-                                                SLOT_CRC, STATE, VERSION, WRITE_HEAD, Cmd, DeviceInfo, Frame,
+from twin.capture.backends import led_auth
+from twin.capture.backends.led_link import admitted, open_link, pump
+from twin.capture.backends.led_protocol import (LIST_ENTRY, MAX_CHUNK, MAX_PAYLOAD, MAX_WIRE, NAK, NO_SLOT, READ_ARGS,
+                                                REPLY, SLOT_CRC, STATE, VERSION, WRITE_HEAD, Cmd, DeviceInfo, Frame,
                                                 FrameError, FrameReader, SlotFlag, State, Status, cobs_decode,
                                                 crc32, encode_frame)
 from twin.capture.backends.faults import FAULT_KINDS, Faults, FaultSpec
@@ -35,6 +40,8 @@ from twin.capture.plan import CaptureError
 
 FIRMWARE_NAME = "hemicube-twin emulator"
 MAX_SLOTS = (MAX_PAYLOAD - STATE.size) // LIST_ENTRY.size  # what one LIST reply can describe (817)
+IDLE_TIMEOUT_S = 30.0
+RECV = 65536  # bytes read from the link at a time
 
 
 class Firmware:
@@ -49,6 +56,7 @@ class Firmware:
         self.num_leds, self.size, self.num_slots = num_leds, 3 * num_leds, slots
         self._rng = random.Random(seed)  # boot ids: different after every reset, the same for a given seed
         self._on_display = on_display or (lambda state, data: None)
+        self.latches = 0  # patterns latched onto the LEDs since power-on, resets included (a fault's trigger)
         self.boot()
 
     def boot(self) -> None:
@@ -130,6 +138,7 @@ class Firmware:
             # its CRC is computed from the display buffer itself, i.e. from what is lit
             self.display = bytes(self.slots[slot] if self.slots[slot] is not None else bytes(self.size))
             self.displayed_slot, self.displayed_crc = slot, crc32(self.display)
+            self.latches += 1
             self._on_display(self, self.display)
             return Status.OK, b""
         if f.type == Cmd.READ:
@@ -162,7 +171,16 @@ class Device:
         while (end := self._split.find(0)) >= 0:
             wire = bytes(self._split[:end + 1])
             del self._split[:end + 1]
-            self._frame_in(wire, send)
+            if self._reader.dropping:  # the end of an over-long run, already dropped
+                self._reader.feed(wire)
+            else:
+                self._frame_in(wire, send)
+        if len(self._split) > MAX_WIRE:
+            # longer than any frame: dropped as it arrives (counted once, as a bad frame without a header, which
+            # gets no reply), so that memory stays bounded however long the run without a delimiter
+            for item in self._reader.feed(bytes(self._split)):
+                self.fw.handle(item)
+            self._split.clear()
 
     def _frame_in(self, wire: bytes, send) -> None:
         self._clean.extend(f for f in FrameReader().feed(wire) if isinstance(f, Frame))
@@ -180,12 +198,17 @@ class Device:
             wire = self.faults.damage(wire, kind)
         wire, flipped = self.faults.flips(wire, "in")
         self.damaged_in += kind in ("drop", "corrupt") or flipped > 0
+        latches = self.fw.latches
         for _ in range(2 if kind == "dup" else 1):
             for item in self._reader.feed(wire):
                 self._judge(item)
                 reply = self.fw.handle(item)
                 if reply is not None:
                     self._send(reply, send)
+        if self.fw.latches > latches and self.faults.brownout():  # acknowledged, then the supply dips
+            self.log.write({"event": "fault", "kind": "brownout", "dir": "in"})
+            self.fw.boot()
+            self.log.write({"event": "reset", "boot_id": self.fw.boot_id})
 
     def _judge(self, item) -> None:
         """Damaged incoming frames must fail their checks: count those that did, and any frame that decoded
@@ -216,7 +239,10 @@ class Device:
 
 class EventLog:
     def __init__(self, path):
-        self._f = open(path, "a", buffering=1) if path else None
+        try:
+            self._f = open(path, "a", buffering=1) if path else None
+        except OSError as e:
+            raise CaptureError(f"--log {path}: {e.strerror}") from None
 
     def write(self, event: dict) -> None:
         if self._f is not None:
@@ -227,65 +253,58 @@ class EventLog:
             self._f.close()
 
 
-def _open_link(link: str):
-    """-> (url to print, listening socket or None, pty master fd or None, slave fd or None)."""
-    if link == "pty":
-        import tty
-
-        master, slave = os.openpty()
-        tty.setraw(master)
-        tty.setraw(slave)  # kept open so that the pty survives the host closing it between connections
-        return os.ttyname(slave), None, master, slave
-    if not link.startswith("socket://"):
-        raise CaptureError(f"--link must be socket://HOST:PORT or pty, got {link!r}")
-    host, _, port = link[len("socket://"):].rpartition(":")
-    try:
-        port_n = int(port)
-    except ValueError:
-        raise CaptureError(f"--link {link!r}: the port must be a number (0: any free port)") from None
-    srv = socket.create_server((host or "127.0.0.1", port_n))
-    h, p = srv.getsockname()[:2]
-    return f"socket://{h}:{p}", srv, None, None
-
-
 def serve(link: str, num_leds: int, *, slots: int = 256, faults: str | None = None, seed: int = 0,
-          log_path=None, out=sys.stdout) -> None:
-    """Serve until SIGTERM/SIGINT. Prints `serving URL (...)` on one line first."""
+          log_path=None, allow_remote: bool = False, token_file=None, idle_timeout_s: float = IDLE_TIMEOUT_S,
+          out=sys.stdout) -> None:
+    """Serve until SIGTERM/SIGINT. Prints `serving URL (...)` on one line first; every error before that is a
+    CaptureError of one line, with nothing left listening or written."""
     spec = FaultSpec.parse(faults)
-    log = EventLog(log_path)
+    if not (math.isfinite(idle_timeout_s) and idle_timeout_s > 0):
+        raise CaptureError(f"--idle-timeout must be a positive number of seconds, got {idle_timeout_s}")
+    if link == "pty" and (token_file is not None or allow_remote):
+        raise CaptureError("--token-file and --allow-remote are for TCP links: a pty is reached from this machine only")
+    token = led_auth.load_token(token_file) if link != "pty" else None
+    log = None
 
     def displayed(fw, data):
         log.write({"event": "display", "slot": fw.displayed_slot, "crc": f"{fw.displayed_crc:08x}",
                    "sha256": hashlib.sha256(data).hexdigest()[:16]})
 
-    device = Device(Firmware(num_leds, slots, seed=seed, on_display=displayed), Faults(spec), log)
-    url, srv, master, slave = _open_link(link)
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, stop)
-    print(f"serving {url} ({num_leds} LEDs, {slots} slots; faults: {spec})", file=out, flush=True)
-    log.write({"event": "listen", "url": url})
+    firmware = Firmware(num_leds, slots, seed=seed, on_display=displayed)
+    url, srv, master, slave = open_link(link, allow_remote, token)
     try:
+        log = EventLog(log_path)
+        device = Device(firmware, Faults(spec), log)
+
+        def stop(signum, frame):
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGTERM, stop)
+        access = "; token required" if token is not None else ""
+        print(f"serving {url} ({num_leds} LEDs, {slots} slots; faults: {spec}{access})", file=out, flush=True)
+        log.write({"event": "listen", "url": url})
         if master is not None:
-            _pump(device, master, lambda b: os.write(master, b), lambda: os.read(master, 65536))
+            pump(master, device.receive, lambda b: os.write(master, b), lambda: os.read(master, RECV))
         else:
             while True:
-                conn, _ = srv.accept()
-                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                log.write({"event": "connect"})
+                conn, peer = srv.accept()
                 with conn:
-                    _pump(device, conn, conn.sendall, lambda: conn.recv(65536))
-                log.write({"event": "disconnect"})
+                    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                    log.write({"event": "connect", "peer": peer[0]})
+                    if token is not None and not admitted(conn, token, min(led_auth.TIMEOUT_S, idle_timeout_s)):
+                        log.write({"event": "refused", "peer": peer[0]})
+                        continue
+                    why = pump(conn, device.receive, conn.sendall, lambda: conn.recv(RECV), idle_timeout_s)
+                log.write({"event": "disconnect", "reason": why})
     except KeyboardInterrupt:
         pass
     finally:
-        log.write({"event": "summary", "faults": device.faults.counts, "rejected_in": device.rejected_in,
-                   "damaged_in": device.damaged_in, "damaged_in_accepted": device.damaged_in_accepted,
-                   "sent": len(device.sent_crcs), "sent_crcs": b"".join(
-                       c.to_bytes(4, "little") for c in device.sent_crcs).hex()})
-        log.close()
+        if log is not None:
+            log.write({"event": "summary", "faults": device.faults.counts, "rejected_in": device.rejected_in,
+                       "damaged_in": device.damaged_in, "damaged_in_accepted": device.damaged_in_accepted,
+                       "sent": len(device.sent_crcs), "sent_crcs": b"".join(
+                           c.to_bytes(4, "little") for c in device.sent_crcs).hex()})
+            log.close()
         for fd in (master, slave):
             if fd is not None:
                 os.close(fd)
@@ -293,33 +312,26 @@ def serve(link: str, num_leds: int, *, slots: int = 256, faults: str | None = No
             srv.close()
 
 
-def _pump(device: Device, fileobj, send, recv) -> None:
-    """Feed the device from one link until the host goes away (a socket's EOF; a pty never ends)."""
-    while True:
-        select.select([fileobj], [], [])
-        try:
-            data = recv()
-        except (ConnectionResetError, OSError):
-            return
-        if not data:
-            return
-        try:
-            device.receive(data, send)
-        except (BrokenPipeError, ConnectionResetError):
-            return
-
-
 def add_arguments(p) -> None:
     """`hemicube controller serve`'s options (also `python -m twin.capture.backends.led_emulator`)."""
-    p.add_argument("--link", required=True, help="socket://127.0.0.1:PORT (TCP; port 0 picks a free one) or pty "
-                   "(a pseudo-terminal whose path is printed)")
+    p.add_argument("--link", required=True, help="socket://127.0.0.1:PORT (TCP on loopback; port 0 picks a free "
+                   "one; another address needs --allow-remote) or pty (a pseudo-terminal whose path is printed)")
+    p.add_argument("--allow-remote", action="store_true", help="let --link listen where other hosts can reach it "
+                   "(socket://0.0.0.0:PORT, a LAN address): only with a token")
+    p.add_argument("--token-file", help="file whose first line is the token (16+ characters) every TCP host must "
+                   f"prove it holds before its first frame (docs/led-protocol.md, 1.1; default: ${led_auth.TOKEN_ENV}, "
+                   "if set; the hosts read it from there); never printed or logged")
+    p.add_argument("--idle-timeout", type=float, default=IDLE_TIMEOUT_S, metavar="S", help="disconnect a TCP host "
+                   "that sends nothing for S seconds, so that another can connect; the host reconnects by itself "
+                   "(default: %(default)s)")
     p.add_argument("--rig", default="mini", help="built-in rig or rig folder whose LED count the controller drives "
                    "(default: %(default)s)")
     p.add_argument("--leds", type=int, help="LED count, instead of --rig's")
     p.add_argument("--slots", type=int, default=256, help="pattern slots in the controller's memory "
                    "(default: %(default)s)")
     p.add_argument("--faults", help="faults to inject, e.g. corrupt=0.01,delay=0.01,flip=1e-5,seed=3 (kinds: "
-                   + ", ".join(FAULT_KINDS) + "; docs/led-protocol.md)")
+                   + ", ".join(FAULT_KINDS) + "; brownout=P: a reset right after latching a pattern; "
+                   "docs/led-protocol.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the controller's boot ids (default: %(default)s)")
     p.add_argument("--log", help="append JSON lines here: faults injected, patterns displayed, resets, a summary "
                    "at exit")
@@ -330,18 +342,24 @@ def run(args) -> int:
         import twin
 
         args.leds = twin.load_rig(args.rig).num_leds
-    serve(args.link, args.leds, slots=args.slots, faults=args.faults, seed=args.seed, log_path=args.log)
+    serve(args.link, args.leds, slots=args.slots, faults=args.faults, seed=args.seed, log_path=args.log,
+          allow_remote=args.allow_remote, token_file=args.token_file, idle_timeout_s=args.idle_timeout)
     return 0
 
 
 def spawn(num_leds: int, *, link: str = "socket://127.0.0.1:0", faults: str | None = None, slots: int = 256,
-          seed: int = 0, log=None, timeout_s: float = 60.0) -> tuple[subprocess.Popen, str]:
-    """Start the emulator as its own process; returns it and the URL it serves (terminate it when done)."""
+          seed: int = 0, log=None, token: str | None = None, allow_remote: bool = False,
+          idle_timeout_s: float | None = None, timeout_s: float = 60.0) -> tuple[subprocess.Popen, str]:
+    """Start the emulator as its own process; returns it and the URL it serves (terminate it when done). A
+    `token` goes to it in its environment, never on its command line, which every user of the machine can read."""
     cmd = [sys.executable, "-m", "twin.capture.backends.led_emulator", "--link", link, "--leds", str(num_leds),
            "--slots", str(slots), "--seed", str(seed)]
     cmd += ["--faults", faults] if faults else []
     cmd += ["--log", str(log)] if log else []
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd += ["--allow-remote"] if allow_remote else []
+    cmd += ["--idle-timeout", str(idle_timeout_s)] if idle_timeout_s is not None else []
+    env = {**os.environ, led_auth.TOKEN_ENV: token} if token is not None else None
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
     line = proc.stdout.readline() if ready else ""
     if not line.startswith("serving "):

@@ -7,6 +7,10 @@ returns the controller's state, whose `displayed_crc` is the CRC-32 of what the 
 DeviceError unless that equals the pattern's CRC. Every command is stop-and-wait: sent, then retransmitted
 with the same sequence number after a timeout, a damaged reply or a NAK, with exponential backoff, until
 `retries` retransmissions have failed, which raises one DeviceError that says what went wrong.
+
+On a socket:// link to a controller that asks for a token (`hemicube controller serve` with one), the host
+proves it holds the same token before its first frame (led_auth; the token from $HEMICUBE_LED_TOKEN), on
+every connection, reconnections included.
 """
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twin.capture.backends import led_auth
 from twin.capture.backends.led_protocol import (LIST_ENTRY, MAX_CHUNK, MAX_PAYLOAD, NAK, READ_ARGS, REPLY,
                                                 SLOT_CRC, STATE, Cmd, DeviceInfo, Frame, FrameError, FrameReader,
                                                 SlotFlag, State, Status, changed_runs, crc32, encode_frame,
@@ -57,13 +62,14 @@ class _Rebooted(Exception):
 class LedController:
     def __init__(self, url: str, num_leds: int | None = None, *, baudrate: int = DEFAULT_BAUD,
                  timeout_s: float = 0.2, retries: int = 8, backoff_s: float = 0.01, seq0: int = 0,
-                 audit: bool = False):
+                 audit: bool = False, token: bytes | None = None):
         if serial is None:
             raise DeviceError("the LED controller link needs pyserial: pip install 'hemicube-twin[hardware]'")
         self.url, self.baudrate = url, baudrate
         self.timeout_s, self.retries, self.backoff_s = timeout_s, retries, backoff_s
         self.stats = LinkStats()
         self._audit = audit
+        self._token = token if token is not None else led_auth.load_token()
         self._seq = seq0 & 0xFFFF
         self._port = None
         self._open()
@@ -86,9 +92,37 @@ class LedController:
                                                write_timeout=max(1.0, 20 * MAX_PAYLOAD / self._rate()))
         except (serial.SerialException, ValueError, OSError) as e:
             raise DeviceError(f"LED controller at {self.url}: cannot open the link ({e})") from None
+        tcp = self.url.startswith("socket://")
+        if tcp and self._token is not None:
+            self._authenticate()
         self._port.reset_input_buffer()  # replies meant for an earlier host
         self._reader = FrameReader()
         self._pending: deque = deque()  # frames read but not yet looked at
+        self._head = bytearray() if tcp and self._token is None else None  # this link's first bytes (_spot_handshake)
+
+    def _authenticate(self) -> None:
+        """The token handshake (led_auth), before the first frame: each end proves it holds the token."""
+        def read_some(_left: float) -> bytes:
+            return self._port.read_until(b"\n", led_auth.LINE_MAX + 1)  # returns within POLL_S
+
+        deadline = time.monotonic() + led_auth.TIMEOUT_S
+        try:
+            led_auth.host(self._token, self._port.write, lambda: led_auth.read_line(read_some, deadline))
+        except (led_auth.HandshakeError, serial.SerialException, OSError) as e:
+            self._port.close()  # closed, not dropped: a retry after a failed reconnection reopens it
+            raise DeviceError(f"LED controller at {self.url}: the token handshake failed: {e} (this host's token is "
+                              f"{led_auth.TOKEN_ENV}'s; the controller must be serving with the same one)") from None
+
+    def _spot_handshake(self, data: bytes) -> None:
+        """A controller that asks for a token answers a host that sent a frame instead with a handshake line,
+        then closes the link: say so, rather than retry a link that will never carry a frame."""
+        self._head += data
+        if self._head.startswith(led_auth.MAGIC):
+            self._port.close()
+            raise DeviceError(f"LED controller at {self.url} asks for a token: set {led_auth.TOKEN_ENV} to the "
+                              "token it was started with")
+        if not led_auth.MAGIC.startswith(bytes(self._head)):
+            self._head = None
 
     def _reopen(self) -> None:
         self.stats.reconnects += 1
@@ -145,6 +179,8 @@ class LedController:
                 return "timeout"
             data = self._port.read(max(1, self._port.in_waiting))
             if data:
+                if self._head is not None:
+                    self._spot_handshake(data)
                 self.stats.bytes_received += len(data)
                 self._pending.extend(self._reader.feed(data))
 

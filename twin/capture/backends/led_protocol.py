@@ -158,6 +158,11 @@ class FrameReader:
         self._buf = bytearray()
         self._overrun = False
 
+    @property
+    def dropping(self) -> bool:
+        """Whether the bytes up to the next delimiter are the rest of an over-long run, already reported."""
+        return self._overrun
+
     def feed(self, data: bytes) -> list:
         out = []
         self._buf += data
