@@ -187,3 +187,14 @@ def test_a_photo_never_metered_under_its_pattern_is_refused_by_name(tmp_path):
     assert message == (f"photo img{UNIFORM.index:05d}_cam00: camera primary: the LEDs did not stay lit through the "
                        f"metering in {METER_ATTEMPTS} attempts ({METER_ATTEMPTS} x the LEDs changed during the metering "
                        f"(displayed {off}, the controller reset))")
+
+
+@pytest.mark.parametrize("options", [{"rate": 0.0}, {"injections": 0}, {"scale": -1.0}, {"scale": float("nan")}])
+def test_the_bench_refuses_bad_options_before_making_its_folder(tmp_path, options):
+    """`hemicube bench metering-faults` with an option that could not run: one line naming it, no folder made."""
+    from twin.capture.reliability import bench_metering_faults
+
+    work = tmp_path / "work"
+    with pytest.raises(CaptureError, match="metering-faults needs"):
+        bench_metering_faults(**{"injections": 1, "rate": 0.5, "workdir": work, **options})
+    assert not work.exists()

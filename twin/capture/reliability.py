@@ -16,6 +16,7 @@ folder (`reference`).
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import re
@@ -253,6 +254,8 @@ def bench_metering_faults(injections: int = 100, rate: float = 0.25, seed: int =
     if not (0 < rate <= 1 and injections >= 1):  # else no photo would ever be hit: the run would not end
         raise CaptureError(f"metering-faults needs --rate in (0, 1] and --injections >= 1, got {rate} and "
                            f"{injections}")
+    if not (math.isfinite(scale) and 0 < scale <= 1):  # checked before the work folder is made
+        raise CaptureError(f"metering-faults needs --scale in (0, 1], got {scale}")
     workdir = Path(workdir or ".")
     workdir.mkdir(parents=True, exist_ok=True)
     rig = load_rig("mini")
