@@ -5,12 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .lab import STAGES, calibrate, report_doc, stage, write
+from .lab import CALIBRATION_FOLDER, STAGES, calibrate, report_doc, stage, write
 
 
 def cmd_calibrate(args) -> int:
     import twin
+    from twin.outputs import claim_output
 
+    claim_output(args.output, CALIBRATION_FOLDER, [("the nominal rig's folder", args.rig)])
     nominal = twin.load_rig(args.rig)
     if "all" in args.what and len(args.what) > 1 or len(set(args.what)) < len(args.what):
         raise ValueError(f"calibrate {' '.join(args.what)}: name each procedure once, or 'all' alone")
@@ -55,7 +57,8 @@ def register(sub) -> None:
                    "all)")
     s.add_argument("--binning", type=int, default=1, help="leds, bottom, colour: bin the cameras' pixels B x B for "
                    "the photos (default: %(default)s; the paper rig's 2664 x 2304 photos at 12 give 222 x 192)")
-    s.add_argument("-o", "--output", required=True, help="folder for rig/, truth/ and report.json (replaced)")
+    s.add_argument("-o", "--output", required=True, help="folder for rig/, truth/ and report.json (a "
+                   "calibration folder there is replaced whole; any other existing path is refused)")
     s.add_argument("--validate", action="store_true", help="exit 1 when a calibration misses a goal against the "
                    "twin's truth (the scores are in the report and printed either way)")
     s.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")

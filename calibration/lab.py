@@ -17,17 +17,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from twin.outputs import Kind
+
 from .cameras import CAMERA_GOALS, CalibrationError, calibrate_cameras
 from .colour import COLOUR_GOALS, ColourCalibrationError, calibrate_colour
 from .leds import LED_GOALS, LEDCalibrationError, calibrate_leds_from_plate
 from .vignetting import FLAT_FIELD_GOAL_PCT, FlatFieldError, calibrate_vignetting
 
-__all__ = ["STAGES", "Stage", "stage", "calibrate", "report_doc", "write"]
+__all__ = ["STAGES", "CALIBRATION_FOLDER", "Stage", "stage", "calibrate", "report_doc", "write"]
 
 
 # a lab's order: each procedure takes the rig the ones before it calibrated (the colour and the LEDs photograph
 # the plate through the calibrated cameras and flat fields; the LEDs' intensities are in the calibrated colour)
 STAGES = ("cameras", "vignetting", "colour", "leds", "bottom")
+REPORT = "report.json"
+# OUT, replaced whole by the next calibration (twin.outputs): its report names it
+CALIBRATION_FOLDER = Kind("a calibration folder", (REPORT,))
 
 
 @dataclass(frozen=True)
@@ -138,4 +143,4 @@ def write(output: Path, rig, truth, doc: dict) -> None:
     with atomic_folder(output, overwrite=True) as tmp:  # nothing is left from a failed run
         save_rig(rig, tmp / "rig")
         save_rig(truth, tmp / "truth")
-        (tmp / "report.json").write_text(json.dumps(doc, indent=1) + "\n")
+        (tmp / REPORT).write_text(json.dumps(doc, indent=1) + "\n")

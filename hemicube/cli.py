@@ -4,6 +4,8 @@ spans them and lives here."""
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import sys
 
 
@@ -60,12 +62,34 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# the way on from the operating system's refusals to write (the writers leave nothing half-written, twin.atomic; a
+# capture or a reconstruction run again goes on from what it had finished)
+_FULL = "free some space and run the command again (a capture or a reconstruction goes on from what it had finished)"
+_NOT_OURS = "choose a folder you may write to"
+_WAY_ON = {errno.EROFS: "choose a folder on a writable file system", errno.EACCES: _NOT_OURS, errno.EPERM: _NOT_OURS,
+           errno.ENOSPC: _FULL, getattr(errno, "EDQUOT", errno.ENOSPC): _FULL}
+
+
+def _os_error_line(e: OSError) -> str:
+    """One line for an error of the operating system: the path, the cause in words, and the way on where the user
+    has one (a read-only place, a full disk)."""
+    cause = str(e.strerror or e)
+    line = cause[:1].lower() + cause[1:]
+    if e.filename is not None:
+        line = f"{os.fsdecode(e.filename)}: {line}"
+    way = _WAY_ON.get(e.errno)
+    return f"{line}; {way}" if way else line
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
     except (ValueError, FileExistsError, FileNotFoundError, KeyError) as e:  # every input error is a ValueError
         print(f"hemicube: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the system's own refusal (a read-only place, a full disk): one line; a traceback is for bugs
+        print(f"hemicube: error: {_os_error_line(e)}", file=sys.stderr)
         return 2
 
 

@@ -36,6 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.outputs import Kind, claim_output
+
+from reconstruction.network.train import RUN_FOLDER
+
 HOW = {
     "heldout_eq3": "Eq. 3 loss on the test distribution's fixed texels of the network trained for the design's "
                    "steps on its training distribution; mean over seeds",
@@ -59,6 +63,11 @@ HOW = {
               "alpha_y) and of the fitted maps' render SSIM against the held-out line photo",
     "maps_goals_missed": "with --maps: hemicube validate's goals (thresholds) missed, over all the samples",
 }
+# the output folders, resumed (twin.outputs): evaluate's holds its table, or a design's figures or training runs;
+# optimise's its training run
+EVALUATE_FOLDER = Kind("a design evaluate folder", ("designs.json", "*/figures.json",
+                                                    *(f"*/seed*/{m}" for m in RUN_FOLDER.markers)))
+OPTIMISE_FOLDER = Kind("a design optimise folder", tuple(f"run/{m}" for m in RUN_FOLDER.markers))
 REFERENCE_TEXELS = 256
 TEST_TEXELS = 2048
 TEST_SEED = 20231101  # the test texels' seed: the same texels for every design of a comparison
@@ -147,8 +156,9 @@ def optimise(path: str, output, device: str = "cpu", steps: int | None = None, s
     from reconstruction.network.train import train
     from twin.design.design_file import load_design
 
-    design = load_design(path)
     out = Path(output)
+    claim_output(out, OPTIMISE_FOLDER, [("the design file", path)])
+    design = load_design(path)
     cfg = train_config(design, out, design.training.seeds[0] if seed is None else int(seed), device, steps)
     m = train(cfg, out / "run", progress=progress)
     print(f"design {design.name}: {m['steps']} steps on {design.training.distribution!r}, held-out Eq. 3 "
@@ -315,6 +325,8 @@ def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = Fals
                                         or maps_resolution < 4):
         raise ValueError(f"maps resolution must be an integer >= 4 texels per side, got {maps_resolution!r}")
     out = Path(output)
+    claim_output(out, EVALUATE_FOLDER, [("the design file", p) for p in paths] + [("the maps of sample " + str(m), m)
+                                                                                 for m in maps])
     if jobs > 1:
         _train_parallel(designs, out, device, jobs, progress)
     rows = [evaluate_design(d, out / d.name, device, progress, maps, maps_resolution) for d in designs]
@@ -351,7 +363,8 @@ def register(sub) -> None:
     e = ds.add_parser("evaluate", help="score designs side by side: held-out loss over training seeds, "
                       "measurement SNR and multiplexing gain, acquisition and upload time, LED duty")
     e.add_argument("designs", nargs="+", metavar="DESIGN", help="design files (TOML; twin.design.design_file)")
-    e.add_argument("-o", "--output", default="hemicube-design", help="output folder (default: %(default)s)")
+    e.add_argument("-o", "--output", default="hemicube-design", help="output folder (re-run to resume; any other "
+                   "existing path is refused) (default: %(default)s)")
     e.add_argument("--device", default="cpu", help="torch device for training (default: %(default)s)")
     e.add_argument("--json", action="store_true", help="print the table as JSON")
     e.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
@@ -370,7 +383,8 @@ def register(sub) -> None:
                       "(uniform GGX, the material suite, or folders of maps): patterns to capture with, a network "
                       "to reconstruct with")
     o.add_argument("design", help="a design file (TOML)")
-    o.add_argument("-o", "--output", required=True, help="output folder (re-run to resume)")
+    o.add_argument("-o", "--output", required=True, help="output folder (re-run to resume; any other existing "
+                   "path is refused)")
     o.add_argument("--steps", type=int, help="training steps (default: the design's)")
     o.add_argument("--seed", type=int, help="training seed (default: the design's first)")
     o.add_argument("--device", default="cpu", help="torch device (default: %(default)s)")

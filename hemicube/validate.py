@@ -25,8 +25,24 @@ import time
 from pathlib import Path
 
 from twin.capture.plan import DEFAULT_FRAMES
+from twin.capture.session import CAPTURE_FOLDER
+from twin.outputs import Kind, claim_output
+
+from reconstruction.output import RECONSTRUCTION_FOLDER
 
 DEFAULT_ROOT = Path("hemicube-validate")
+# OUTPUT, resumed (twin.outputs): its capture or reconstruction says what it is; a suite's are one folder deeper
+_PARTS = tuple(f"{part}/{marker}" for part, kind in (("capture", CAPTURE_FOLDER),
+                                                     ("reconstruction", RECONSTRUCTION_FOLDER))
+               for marker in kind.markers)
+VALIDATE_FOLDER = Kind("a validate folder", _PARTS)
+SUITE_FOLDER = Kind("a validate --suite folder", tuple(f"*/{m}" for m in _PARTS))
+
+
+def _claim(out: Path, kind: Kind, rig: str, samples) -> None:
+    """OUTPUT checked before the checks and the captures (twin.outputs): of its own kind or new, holding none of
+    the folders read (a rig folder, a sample's maps)."""
+    claim_output(out, kind, [("the rig folder", rig)] + [("the maps of sample " + str(s), s) for s in samples])
 
 
 def _sample_name(sample: str) -> str:
@@ -144,6 +160,8 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
 
     rig_obj = twin.load_rig(rig)
     check_frames(frames)  # before the checks and the folder: a bad count is one line, nothing written
+    out = Path(output) if output else DEFAULT_ROOT / f"{rig_obj.name}_{_sample_name(sample)}_seed{seed}{_x(frames)}"
+    _claim(out, VALIDATE_FOLDER, rig, [sample])
     if device == "cpu" and not anyway:
         maps = load_sample(sample, resolution=SAMPLE_RESOLUTION)
         if capture_evaluations(rig_obj, maps) > ESTIMATE_ABOVE and \
@@ -153,7 +171,6 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
                 f"{est['render_s'] / 3600:.1f} h here ({est['evaluations']:.1e} LED evaluations; one row took "
                 f"{est['timed_s']:.1f} s), before the reconstruction's hours; use --device cuda, or --anyway to run it")
     checks, ref = _self_checks(rig_obj, device)
-    out = Path(output) if output else DEFAULT_ROOT / f"{rig_obj.name}_{_sample_name(sample)}_seed{seed}{_x(frames)}"
     metrics, rows, paths = end_to_end(rig_obj, sample, device, out, resolution, seed, progress and not as_json,
                                       frames=frames)
     ok = all(c.passed for c in checks) and all(r["passed"] for r in rows)
@@ -223,8 +240,9 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
     names = list(names or SUITE)
     rig_obj = twin.load_rig(rig)
     check_frames(frames)  # one line, not an error per sample
-    checks, _ = _self_checks(rig_obj, device)
     out = Path(output) if output else DEFAULT_ROOT / f"suite_{rig_obj.name}_seed{seed}{_x(frames)}"
+    _claim(out, SUITE_FOLDER, rig, names)
+    checks, _ = _self_checks(rig_obj, device)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(names)))
     if str(device).startswith("cuda"):
         jobs = 1  # one GPU: the samples queue on it

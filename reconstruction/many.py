@@ -16,6 +16,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from twin.batch import LOG_FOLDER, RECORD_FILE, BatchOptions, Job, outcomes_table, recorded_results, run_batch
+from twin.outputs import Kind, claim_output
 
 from reconstruction.output import ReconstructionFolder
 from reconstruction.pipeline import ReconstructConfig, _jsonable
@@ -51,6 +52,9 @@ def reconstruct_one(capture: str, output: str, config: dict) -> dict:
     return out
 
 
+# OUT, resumed (twin.outputs): its batch.json names the captures folder (capture-many's names its samples file)
+RECONSTRUCT_MANY_FOLDER = Kind("a reconstruct-many folder", (RECORD_FILE,), field="captures")
+
 # the settings a batch passes to its tasks (the command's options); the rest are ReconstructConfig's defaults
 TASK_SETTINGS = ("resolution", "size_mm", "network", "device", "holdout_line")
 
@@ -76,8 +80,9 @@ def reconstruct_many(captures_dir, output, config: ReconstructConfig = Reconstru
     """Run the batch (module docstring); returns twin.batch.Outcome per capture and writes OUT/batch.json."""
     out = Path(output)
     caps = find_captures(captures_dir)
-    if out.resolve() in [c.resolve() for c in caps] or out.resolve() == Path(captures_dir).resolve():
-        raise ValueError(f"{out}: the output folder must not be the captures folder or one of its captures")
+    claim_output(out, RECONSTRUCT_MANY_FOLDER, [("the captures folder", captures_dir),
+                                                ("the network's run folder", None if config.network == "pretrained"
+                                                 else config.network)])
     want = {k: v for k, v in asdict(config).items() if k in TASK_SETTINGS}
     if _config(want) != config:
         raise ValueError(f"reconstruct-many passes only {', '.join(TASK_SETTINGS)} to its tasks; the other "

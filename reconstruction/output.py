@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
+from twin.outputs import Kind
 from twin.paths import files_below, inside
 
 FORMAT_NAME = "hemicube-reconstruction"
@@ -54,6 +55,7 @@ REFIT_STATE = "refit_state.npz"
 STAGE_FILES = {"alignment": (ALIGNMENT,), "extraction": (MEASUREMENTS,), "finetune": (LATENT, LATENT_PASSES),
                "finetune_state": (FINETUNE_STATE,), "fit_state": (FIT_STATE,), "refit_state": (REFIT_STATE,)}
 PARTIAL_STAGES = ("finetune_state", "fit_state", "refit_state")  # a stage's unfinished state (module docstring)
+RECONSTRUCTION_FOLDER = Kind("a reconstruction folder", (SUMMARY,))  # what `reconstruct -o` replaces (twin.outputs)
 
 
 def _partial(stage: str) -> None:

@@ -18,7 +18,8 @@ path that is not one, or an output inside the capture, is refused before any wor
 is a symbolic link (a folder on a scratch disk) is written where it points. Stages 1, 2 and 4 are kept as they
 finish, so a killed or failed run, started again with the same capture and settings, resumes after the last one
 finished (reconstruction.output's stage folder). One run at a time holds the stage folder's lock (twin.lock); a run
-refused it changes nothing there.
+refused it changes nothing there. Every setting is checked against the capture before the lock is taken
+(`check_settings`): a bad one costs no work and leaves nothing behind.
 """
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ from reconstruction.stages.alignment import AlignConfig
 from reconstruction.stages.alignment_check import CheckConfig
 from reconstruction.stages.finetune import FinetuneConfig
 from reconstruction.stages.fitting import FitConfig
-from reconstruction.output import STAGES, SUMMARY, ReconstructionFolder, stages_folder
+from reconstruction.output import RECONSTRUCTION_FOLDER, STAGES, ReconstructionFolder, stages_folder
 
 FINETUNE_PHOTOS = ("lines", "lines+learned")
 
@@ -125,20 +126,39 @@ def choose_holdout(lines: np.ndarray, valid: np.ndarray) -> int:
     return int(np.argmax(np.median(lines[valid].mean(axis=2), axis=0)))
 
 
-def check_output(out: Path, capture: Path) -> None:
-    """An output folder is owned, never clobbered: `reconstruct` replaces only a reconstruction folder (its
-    summary file names it) or an empty folder, and never writes into, over or around the capture it reads. A
-    ValueError names the path otherwise, before anything is written."""
-    o, c = out.resolve(), Path(capture).resolve()
-    if o == c or c in o.parents or o in c.parents:
-        raise ValueError(f"{out}: the output would be the capture being read ({capture}), lie inside it or hold "
-                         "it; choose another folder")
-    if out.exists() or out.is_symlink():
-        if not out.is_dir():
-            raise ValueError(f"{out} exists and is not a folder; choose another output path")
-        if not (out / SUMMARY).is_file() and any(out.iterdir()):
-            raise ValueError(f"{out} exists and is not a reconstruction folder (no {SUMMARY}); choose another "
-                             "output path or empty it first")
+def check_output(out: Path, capture: Path, network: str = "pretrained") -> None:
+    """An output folder is owned, never clobbered (twin.outputs): `reconstruct` replaces only a reconstruction
+    folder (its summary file names it) or an empty folder, and never writes into, over or around the capture it
+    reads or the network run folder it decodes with. A ValueError names the path otherwise, before anything is
+    written."""
+    from twin.outputs import claim_output
+
+    claim_output(out, RECONSTRUCTION_FOLDER, [("the capture being read", capture),
+                                              ("the network's run folder", None if network == "pretrained" else
+                                               network)])
+
+
+def check_settings(config: ReconstructConfig, session, rig):
+    """Every setting checked against the capture and its rig before any work (no lock taken, no stage folder made):
+    the device exists, the texture grid fits the rig (reconstruction.stages.extraction.TextureGrid.check_rig; with
+    the detected size, the largest sample the rig holds), the held-out line is one of the capture's, and the network
+    loads and was trained with the capture's learned patterns. A ValueError says which setting otherwise."""
+    from twin.capture.plan import indices_of
+    from twin.optics.inputs import check_device
+
+    from reconstruction.stages.extraction import TextureGrid
+    from reconstruction.stages.latents import check_patterns
+
+    check_device(config.device)
+    TextureGrid(config.resolution, rig.sample.max_size if config.size_mm is None else config.size_mm).check_rig(rig)
+    lines = len(indices_of(session).lines)
+    if config.holdout_line is not None and not (isinstance(config.holdout_line, (int, np.integer))
+                                                and 0 <= config.holdout_line < lines):
+        raise ValueError(f"--holdout-line {config.holdout_line}: the capture has {lines} line photos, 0 to "
+                         f"{lines - 1}")
+    # the decode loads the network again, where it always has: fine-tuning on a copy loaded before the alignment gave
+    # other bits than the same run in another process (tests/reconstruction/test_reconstruct_resume.py)
+    check_patterns(load_network(config.network, rig, config.device), session, rig)
 
 
 def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig(), *, progress: bool = True,
@@ -151,9 +171,10 @@ def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig()
     from twin.paths import files_below, inside
 
     session, out = CaptureSession.open(capture), Path(output)
-    check_output(out, session.dir)
+    check_output(out, session.dir, config.network)
     if rig is None:
         rig = session.rig()
+    check_settings(config, session, rig)
     target = Path(os.path.realpath(out)) if out.is_symlink() else out
     # the stage folder is no link, nor is anything in it: refused before the lock, so a refused run leaves it as it is
     stages = ReconstructionFolder(inside(target.parent, stages_folder(target).name))
@@ -224,7 +245,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     from reconstruction.stages.extraction import extract, texture_grid
     from reconstruction.stages.finetune import decoded_lumitexels, finetune
     from reconstruction.stages.fitting import fit_ggx, to_maps
-    from reconstruction.stages.latents import check_patterns, decode
+    from reconstruction.stages.latents import decode
 
     timings: dict[str, float] = {}
     resumed: list[str] = []
@@ -288,10 +309,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
 
     t = stage("decode")
     model = load_network(config.network, rig, config.device)
-    check_patterns(model, session, rig)
     hold = choose_holdout(meas.lines, meas.valid) if config.holdout_line is None else int(config.holdout_line)
-    if not 0 <= hold < meas.lines.shape[1]:
-        raise ValueError(f"holdout_line must lie in [0, {meas.lines.shape[1]}), got {hold}")
     ft_cfg = _with_holdout(config.finetune, hold, config.device)
     key = _key(key, _network_digest(model), asdict(ft_cfg), config.finetune_photos)
     rec = finished("finetune", key, "finetune")

@@ -13,7 +13,7 @@ import os
 import re
 import shutil
 import tempfile
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 
@@ -28,21 +28,28 @@ def _file_mode() -> int:
 def atomic_path(path: str | os.PathLike, suffix: str = "", durable: bool = True):
     """Yield a temporary path beside `path`; on success rename it to `path`, on error delete it.
     `suffix` keeps an extension some writers insist on (np.savez appends .npz otherwise); `durable`: fsync before
-    the rename (module docstring)."""
+    the rename (module docstring). An error of the operating system (a read-only place, a full disk) leaves no
+    temporary behind and names `path`, the file the caller wrote, where it named the temporary or no file at all (a
+    write that fails names none)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, _file_mode())
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
+        os.close(fd)
+        os.chmod(tmp, _file_mode())
         yield Path(tmp)
         if durable:
             with open(tmp, "rb") as f:
                 os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    except BaseException as e:
+        if tmp is not None:
+            with suppress(OSError):  # the error that stopped the write is the one to report
+                os.unlink(tmp)
+        if isinstance(e, OSError) and e.errno is not None and (e.filename is None or
+                                                               is_leftover(Path(os.fsdecode(e.filename)).name)):
+            raise OSError(e.errno, e.strerror, str(path)) from e  # the same subclass (PermissionError, ...)
         raise
 
 
@@ -66,8 +73,14 @@ def atomic_folder(path: str | os.PathLike, overwrite: bool = False, scratch: str
     """Yield a temporary folder to fill; on success it replaces `path` (the old folder is moved aside, the new
     one renamed in, the old one deleted, and put back if the rename fails); on error it is deleted. A reader
     sees the old folder or the complete new one, never a mix. The temporary and the old folder are kept in
-    `scratch` (default: beside `path`; on the same file system, for the renames), where a killed run leaves them."""
+    `scratch` (default: beside `path`; on the same file system, for the renames), where a killed run leaves them.
+    A `path` that is a symbolic link is written where it points, the link kept; one that is not a folder is
+    refused, as rmtree would leave it behind under its hidden name."""
     dest = Path(path)
+    if dest.is_symlink():
+        dest = Path(os.path.realpath(dest))
+    if dest.exists() and not dest.is_dir():
+        raise FileExistsError(f"{dest} exists and is not a folder; choose another path")
     if dest.exists() and not overwrite:
         raise FileExistsError(f"{dest} exists; pass overwrite=True (--force) to replace it")
     dest.parent.mkdir(parents=True, exist_ok=True)

@@ -38,20 +38,24 @@ def cmd_rig_info(args) -> int:
 
 
 def cmd_rig_import(args) -> int:
-    from twin.rig.format import save_rig
+    from twin.outputs import claim_output
+    from twin.rig.format import RIG_FOLDER, save_rig
     from twin.rig.opensvbrdf_import import import_opensvbrdf
 
+    replace = claim_output(args.output, RIG_FOLDER, [("the folder being imported", args.dir)], force=args.force)
     rig = import_opensvbrdf(args.dir)
-    out = save_rig(rig, args.output, overwrite=args.force)
+    out = save_rig(rig, args.output, overwrite=replace)
     print(f"imported {rig.num_leds} LEDs and {len(rig.cameras)} camera(s) from {args.dir} -> {out}")
     return 0
 
 
 def cmd_rig_export(args) -> int:
-    from twin.rig.format import save_rig
+    from twin.outputs import claim_output
+    from twin.rig.format import RIG_FOLDER, save_rig
 
+    replace = claim_output(args.output, RIG_FOLDER, [("the rig being exported", args.rig)], force=args.force)
     rig = _rig_arg(args.rig)
-    out = save_rig(rig, args.output, overwrite=args.force)
+    out = save_rig(rig, args.output, overwrite=replace)
     print(f"wrote rig {rig.name!r} ({rig.num_leds} LEDs) to {out}")
     return 0
 
@@ -104,8 +108,11 @@ def cmd_show_pattern(args) -> int:
 
 def cmd_capture(args) -> int:
     from twin.capture.runner import capture
-    from twin.capture.session import verify
+    from twin.capture.session import CAPTURE_FOLDER, verify
+    from twin.outputs import claim_output
 
+    claim_output(args.output, CAPTURE_FOLDER, [("the rig folder", args.rig), ("the true rig's folder", args.truth),
+                                               ("the sample's maps", args.sample), ("the pattern file", args.patterns)])
     learned = None
     if args.patterns:
         from twin.capture.patterns import load_patterns
@@ -204,12 +211,14 @@ def register(sub) -> None:
     s = rig.add_parser("import-opensvbrdf", help="import the released OpenSVBRDF configuration files")
     s.add_argument("dir", help="folder with lights.bin, intrinsic.yml, extrinsic.yml, ...")
     s.add_argument("-o", "--output", required=True, help="rig folder to write")
-    s.add_argument("--force", action="store_true", help="replace an existing output folder")
+    s.add_argument("--force", action="store_true", help="replace an existing rig folder (never another kind of "
+                   "folder, nor a file)")
     s.set_defaults(func=cmd_rig_import)
     s = rig.add_parser("export", help="write a rig (e.g. a built-in one) as a rig folder")
     s.add_argument("rig", help="built-in rig name (paper, mini) or rig folder")
     s.add_argument("-o", "--output", required=True, help="rig folder to write")
-    s.add_argument("--force", action="store_true", help="replace an existing output folder")
+    s.add_argument("--force", action="store_true", help="replace an existing rig folder (never another kind of "
+                   "folder, nor a file)")
     s.set_defaults(func=cmd_rig_export)
 
     show = sub.add_parser("show", help="pictures of the rig and of patterns").add_subparsers(dest="show_command",
@@ -252,7 +261,8 @@ def register(sub) -> None:
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
     s.add_argument("--patterns", help="pattern file with the learned frames, K (+, -) pairs (a `hemicube train` "
                    "run's patterns.npz; default: the rig's own 64, else a seeded placeholder)")
-    s.add_argument("-o", "--output", required=True, help="session folder (re-run to resume)")
+    s.add_argument("-o", "--output", required=True, help="capture folder (re-run to resume; any other existing "
+                   "path is refused)")
     s.add_argument("--break-lock", action="store_true", help=BREAK_LOCK_HELP)
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     s.set_defaults(func=cmd_capture)

@@ -115,7 +115,13 @@ class FolderLock:
                            "a host whose processes this one cannot see")
                     raise LockError(f"{self.shown} is locked by {self.what} ({_owner(rec)}), {why}; if that run has "
                                     "ended, run again with --break-lock")
-            self._write_record(fd)
+            try:
+                self._write_record(fd)
+            except OSError as e:  # a full disk: not taken, and the file that holds no record goes
+                with suppress(OSError):
+                    os.unlink(self.path)
+                os.close(fd)
+                raise OSError(e.errno, e.strerror, str(self.path)) from e
             self._fd = fd
             return self
         raise LockError(f"{self.path}: the lock file kept being replaced while it was being taken; try again")

@@ -29,12 +29,15 @@ from pathlib import Path
 import torch
 
 from twin.atomic import write_bytes_atomic
+from twin.outputs import Kind, claim_output
 
 from reconstruction.network.data import heldout_set
 from reconstruction.network.architecture import AcquisitionNet, log_to_lumitexel, lumitexel_loss
 from reconstruction.network.train import TrainConfig, _evaluate, blind_loss, export_patterns, heldout_losses, load_run_model
 
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"
+# `network ship -o`'s folder, whose two files a ship replaces (twin.outputs)
+SHIPPED_FOLDER = Kind("a shipped network folder", ("model.json",))
 SHIP_LIMIT = 16 * 2 ** 20
 NARROW_ALPHA = 0.02   # the specular peak is scored on lobes with alpha_x, alpha_y <= this
 FIRST_TEXELS = 8      # per-texel held-out losses kept in model.json, re-evaluated on the CPU in CI
@@ -167,6 +170,8 @@ def ship_network(run_dir, dest=None, device="cpu", commit: str = "") -> dict:
     summary = json.loads((run_dir / "metrics.json").read_text())
     config = TrainConfig.from_json(summary["config"])
     rig = twin.load_rig(config.rig)
+    out = Path(dest) if dest else PRETRAINED_DIR / rig.name
+    claim_output(out, SHIPPED_FOLDER, [("the run being shipped", run_dir)])  # before the scoring
     blob = save(tensors)
     if len(blob) > SHIP_LIMIT:
         raise ValueError(f"{run_dir}: its network is {len(blob) / 2 ** 20:.1f} MiB as it would ship, above the "
@@ -188,7 +193,6 @@ def ship_network(run_dir, dest=None, device="cpu", commit: str = "") -> dict:
             "train_wall_s": summary["wall_s"], "iterations_per_s": summary["iterations_per_s"],
             "lumitexels_per_s": summary["lumitexels_per_s"], "device": summary["device"],
             "config": summary["config"]}
-    out = Path(dest) if dest else PRETRAINED_DIR / rig.name
     out.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(out / "model.safetensors", blob)
     write_bytes_atomic(out / "model.json", (json.dumps(info, indent=1) + "\n").encode())

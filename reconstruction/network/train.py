@@ -61,6 +61,7 @@ import numpy as np
 import torch
 
 from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
+from twin.outputs import Kind, claim_output
 
 from reconstruction.network.data import LumitexelStream, SamplingConfig, heldout_set, led_directions, stream_seed
 from reconstruction.network.distributed import Dist, any_rank, all_sum, barrier, gather_objects, globalise_batchnorm, join
@@ -70,6 +71,8 @@ __all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_pattern
            "CHECKPOINT_SHARD_BYTES", "CHECKPOINT_JSON", "heldout_losses", "blind_loss"]
 
 CHECKPOINT_JSON = "checkpoint.json"
+# a run folder, resumed (twin.outputs): its checkpoint, or the held-out log a run writes before its first one
+RUN_FOLDER = Kind("a training run folder", (CHECKPOINT_JSON, "metrics.jsonl"))
 _SHARD_PREFIX, _LEGACY_TENSORS = "checkpoint-", "checkpoint.safetensors"  # a shard's name; version 1's one file
 # tensor bytes per shard file: 15 MiB, so that a file with its safetensors header stays under 16 MiB (module docstring)
 CHECKPOINT_SHARD_BYTES = 15 * 2 ** 20
@@ -447,6 +450,9 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
     if time_limit is not None and not (isinstance(time_limit, (int, float)) and time_limit >= 0):
         raise ValueError(f"time_limit must be a number of seconds >= 0, got {time_limit!r}")
     run_dir = Path(run_dir)
+    source, _, maps = config.sampling.materials.partition(":")
+    claim_output(run_dir, RUN_FOLDER, [("the rig folder", config.rig), ("the pattern file", config.patterns_file),
+                                       ("the training maps", maps if source == "maps" else None)])
     ctx = join(config.device)  # torchrun's process group, if any (reconstruction.network.distributed)
     device = ctx.device
     if config.batch % ctx.world:

@@ -97,9 +97,25 @@ class TextureGrid:
 
     def __post_init__(self):
         if not isinstance(self.resolution, (int, np.integer)) or self.resolution < 2:
-            raise ExtractionError(f"grid resolution must be an integer >= 2, got {self.resolution!r}")
+            raise ExtractionError(f"grid resolution (--resolution) must be an integer >= 2, got "
+                                  f"{self.resolution!r}")
         if not (math.isfinite(self.size_mm) and self.size_mm > 0):
-            raise ExtractionError(f"grid size must be a positive number of mm, got {self.size_mm!r}")
+            raise ExtractionError(f"grid size (--size-mm) must be a positive number of mm, got {self.size_mm!r}")
+
+    def check_rig(self, rig) -> None:
+        """The grid fits `rig`: no larger than the largest sample its sample plane holds, and no more texels across
+        than the primary camera has photosites across the grid (a finer grid reads no new light, it only costs
+        memory and time), else an ExtractionError naming the option to change. Checked before any work."""
+        if self.size_mm > rig.sample.max_size:
+            raise ExtractionError(f"a {self.size_mm:g} mm grid is larger than the largest sample rig {rig.name!r} "
+                                  f"holds ({rig.sample.max_size:g} mm a side); choose a smaller --size-mm")
+        cam = rig.camera(next(iter(rig.cameras)))
+        uv, _ = cam.project(rig.sample.corners(self.size_mm))
+        across = int(np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).max())  # the square's longest side, px
+        if self.resolution > across:
+            raise ExtractionError(f"{self.resolution} texels across {self.size_mm:g} mm of the sample, where the "
+                                  f"primary camera has {across} photosites across it: a finer grid than the camera "
+                                  f"reads no new light; choose --resolution {across} or less")
 
     @property
     def shape(self) -> tuple[int, int]:

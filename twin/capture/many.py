@@ -27,11 +27,14 @@ import tomllib
 from pathlib import Path
 
 from twin.batch import LOG_FOLDER, RECORD_FILE, BatchOptions, Job, outcomes_table, run_batch
+from twin.outputs import Kind, claim_output
 
 from .session import CaptureError, CaptureSession
 
 KEYS = {"name", "rig", "seed", "resolution", "patterns", "folder"}
 DEFAULTS = {"rig": "mini", "seed": 0, "resolution": 128, "patterns": None}
+# OUT, resumed (twin.outputs): its batch.json names the samples file (reconstruct-many's names its captures)
+CAPTURE_MANY_FOLDER = Kind("a capture-many folder", (RECORD_FILE,), field="samples")
 
 
 def _folder_name(name: str, seed: int) -> str:
@@ -111,6 +114,9 @@ def capture_many(samples_toml, output, device: str = "cpu", options: BatchOption
     """Run the batch (module docstring); returns twin.batch.Outcome per sample and writes OUT/batch.json."""
     samples = read_samples(samples_toml)
     out = Path(output)
+    claim_output(out, CAPTURE_MANY_FOLDER, [("the samples file", samples_toml)] + [
+        (f"the {what} of [[sample]] {i + 1}", s[k]) for i, s in enumerate(samples)
+        for k, what in (("name", "maps"), ("rig", "rig folder"), ("patterns", "pattern file"))])
     jobs = [Job(s["folder"], {"sample": s["name"], "rig": s["rig"], "seed": s["seed"], "resolution": s["resolution"],
                               "patterns": s["patterns"], "output": str(out / s["folder"]), "device": device})
             for s in samples]

@@ -113,8 +113,10 @@ def load_patterns(path: str | os.PathLike) -> PatternSet:
                 raise PatternError(f"{path}: not a {FORMAT_NAME} file")
             if "version" not in z.files:
                 raise PatternError(f"{path}: missing the format version")
-            if int(z["version"]) != FORMAT_VERSION:
-                raise PatternError(f"{path}: unknown pattern format version {int(z['version'])}")
+            version = z["version"]  # a file's own: any shape or type (int() of an array is a TypeError)
+            if version.shape != () or version.dtype.kind not in "iu" or int(version) != FORMAT_VERSION:
+                raise PatternError(f"{path}: unknown pattern format version {version.tolist()!r}; this twin reads "
+                                   f"version {FORMAT_VERSION}")
             missing = [k for k in ("levels", "names", "rig") if k not in z.files]
             if missing:
                 raise PatternError(f"{path}: missing {missing}")

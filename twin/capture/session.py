@@ -36,6 +36,7 @@ import numpy as np
 from twin.atomic import atomic_path, file_sha256, remove_leftovers, write_bytes_atomic
 from twin.capture.plan import CaptureError, Photo, check_frames
 from twin.lock import LOCK, FolderLock, LockError
+from twin.outputs import Kind
 from twin.paths import files_below, inside, relative_path
 
 FORMAT_NAME = "hemicube-capture"
@@ -44,6 +45,7 @@ MANIFEST = "manifest.json"
 PATTERNS = "patterns.npz"
 RIG = "rig"
 MAPS = "ground_truth/maps"
+CAPTURE_FOLDER = Kind("a capture folder", (MANIFEST,))  # what `hemicube capture -o` resumes (twin.outputs)
 VERIFIERS = max(1, min(8, os.cpu_count() or 1))  # threads that checksum a capture's files (verify)
 
 

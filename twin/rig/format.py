@@ -23,10 +23,13 @@ import numpy as np
 import tomli_w
 
 from twin.atomic import atomic_folder
+from twin.outputs import Kind
 from twin.rig.camera import Camera, SensorParams
 from twin.rig.model import (FORMAT_NAME, RIG_FORMAT_VERSION, Board, BottomBoard, HolderFrame, LEDs, Rig, RigError,
                             SamplePlane, rig_to_toml_dict)
 from twin.rig.units import MM_PER, to_mm
+
+RIG_FOLDER = Kind("a rig folder", ("rig.toml",))  # what `rig export --force` replaces (twin.outputs)
 
 LENGTH_FIELDS = {  # what scales with the length unit
     "sample": ("origin", "max_size"),
