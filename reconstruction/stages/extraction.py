@@ -24,14 +24,17 @@ Per photo and camera (reference §6.3, with the differences stated):
   2. the texel's footprint in the photo (`footprint`, ours; one function per method, FOOTPRINTS):
      "point": no filter, the value at the texel centre (step 3), the ~4 photosites around it.
      "cell" (default): the mean over the box of pixels, odd widths kx x ky along the image's axes, whose photosites
-     overlap the texel's cell (the parallelogram the two grid steps span in that view): no photosite's centre more
-     than half a pixel outside it, at every texel, step 3's bilinear lookup included (no filter where both widths
-     are 1: the mini rig's ~2 px a texel at 48^2 and the paper rig's ~1 px at 1024^2, read at the centre; the paper
-     rig at 192^2: 5 x 5 in the primary view, 5.4 px a texel, 3 x 3 in the secondary, 4.8 x 3.4 px). Why: a texel
-     spanning many photosites is measured by all of them instead of the ~4 a bilinear lookup reads (the noise's
-     standard deviation ~sigma / k against ~2 sigma / 3), and a weak, rough lobe (paper stock's, fabric's: 0.5-2% of
-     a photo) is decided by that noise: its alpha error grows in proportion to the photos' noise per texel
-     (docs/accuracy.md: paper on the paper rig at 192^2, alpha 13.0 / 13.7% at the centre, 7.2 / 8.9% over the cell).
+     overlap the texel's cell (the parallelogram its two grid steps span in that view): no photosite's centre more
+     than half a pixel outside it, step 3's bilinear lookup included; each texel's own box, from its own cell (no
+     filter where both widths are 1: the mini rig's ~2 px a texel at 48^2 and the paper rig's ~1 px at 1024^2, read
+     at the centre; the paper rig at 192^2: 5 x 5 in the primary view, 5.4 px a texel, mostly 5 x 3 in the
+     secondary). Why: a texel spanning many photosites is measured by all of them instead of the ~4 a bilinear lookup
+     reads (the noise's standard deviation ~sigma / k against ~2 sigma / 3), and a weak, rough lobe (paper stock's,
+     fabric's: 0.5-2% of a photo) is decided by that noise: its alpha error grows in proportion to the photos' noise
+     per texel (docs/accuracy.md: paper on the paper rig at 192^2, alpha 13.0 / 13.7% at the centre, 7.2 / 8.8% over
+     the cell). Why per texel: one width for a whole view is its narrowest cell's, and the secondary view's cells,
+     read through the alignment map, are under 3 px at a few percent of the texels (the map's local stretches and
+     the sample's rim): one width left the secondary view unfiltered and paper's alpha at 9.6 / 12.5%.
      Its limit: where the maps vary within a texel (maps finer than the grid) the cell's mean is not the BRDF at the
      texel centre the fit models (measured on the mini rig at 24^2 with 64^2 maps: paper's alpha 30 -> 52%).
      "gaussian": the reference's anti-aliasing Gaussian, odd width k = 2 ceil(d/2 + 1) - 1 with d the largest
@@ -242,37 +245,48 @@ def _pixel_steps(uv: np.ndarray, shape) -> np.ndarray:
     return steps[np.isfinite(steps)]
 
 
-def _cell_widths(uv: np.ndarray, shape) -> tuple[int, int]:
-    """Step 2, "cell": odd box widths (kx, ky), (0, 0) (no filter) where both are 1. With the lookup's pixel, the
-    photosite centres read lie within h = k / 2 + 1/2 of the texel centre, and none is more than half a pixel outside
-    the cell when m_r0 k_x / 2 + m_r1 k_y / 2 <= 1/2 for both rows r of m, the largest |J^-1| over the texels, J the
-    2 x 2 of the view's pixel steps along the grid's columns and rows (a pixel offset p is J^-1 p in texel units)."""
+def _texel_jacobians(uv: np.ndarray, shape) -> np.ndarray:
+    """(n, 2, 2) each texel's J: its pixel steps (image x, y rows) along the grid's columns and rows (columns of J),
+    central differences inside the grid, one-sided on its border; NaN where a neighbour's pixel is unknown."""
     g = uv.reshape(*shape, 2).astype(np.float64)
-    a, b = (g[:-1, 1:] - g[:-1, :-1]).reshape(-1, 2), (g[1:, :-1] - g[:-1, :-1]).reshape(-1, 2)
-    jac = np.stack([a, b], axis=-1)  # (n, 2 image axes, 2 grid axes)
-    jac = jac[np.isfinite(jac).all(axis=(1, 2)) & (np.abs(np.linalg.det(jac)) > 1e-12)] if len(jac) else jac
-    if not len(jac):
-        return 0, 0
-    m = np.abs(np.linalg.inv(jac)).max(axis=0)  # rows: the grid axes; columns: the image axes x, y
+    along_cols, along_rows = (np.gradient(g, axis=a) for a in (1, 0))
+    return np.stack([along_cols, along_rows], axis=-1).reshape(-1, 2, 2)
 
-    def fits(kx, ky):
-        return bool(np.all(m[:, 0] * kx / 2 + m[:, 1] * ky / 2 <= 0.5 + CELL_SLACK))
+
+def _cell_widths(uv: np.ndarray, shape) -> np.ndarray:
+    """Step 2, "cell": each texel's odd box widths (kx, ky) (n, 2), (0, 0) (no filter) where both are 1. With the
+    lookup's pixel, the photosite centres read lie within h = k / 2 + 1/2 of the texel centre, and none is more than
+    half a pixel outside the texel's cell when m_r0 k_x / 2 + m_r1 k_y / 2 <= 1/2 for both rows r of m = |J^-1|, J
+    the texel's own pixel steps along the grid's columns and rows (a pixel offset p is J^-1 p in texel units). Per
+    texel, so that a perspective view's larger cells (the near side of a tilted camera's field) are read whole too."""
+    jac = _texel_jacobians(uv, shape)
+    ok = np.isfinite(jac).all(axis=(1, 2)) & (np.abs(np.linalg.det(np.nan_to_num(jac))) > 1e-12)
+    m = np.ones((len(jac), 2, 2))  # unknown texels: any width > 1 fails, so none
+    m[ok] = np.abs(np.linalg.inv(jac[ok]))  # rows: the grid axes; columns: the image axes x, y
+
+    def fits(k):
+        return (m[:, :, 0] * k[:, :1] / 2 + m[:, :, 1] * k[:, 1:] / 2 <= 0.5 + CELL_SLACK).all(axis=1)
 
     # each axis alone, then the wider shrunk until both fit together (a grid turned in the image)
-    kx, ky = (max(1, 2 * math.floor((1.0 + 2 * CELL_SLACK) / max(m[:, i].max(), 1e-12) / 2 - 0.5) + 1)
-              for i in (0, 1))
-    while not fits(kx, ky) and max(kx, ky) > 1:  # the wider first, both alike when equal (no favoured axis)
-        kx, ky = max(1, kx - 2 * (kx >= ky)), max(1, ky - 2 * (ky >= kx))
-    return (0, 0) if (kx, ky) == (1, 1) or not fits(kx, ky) else (kx, ky)
+    k = np.maximum(1, 2 * np.floor((1.0 + 2 * CELL_SLACK) / np.maximum(m.max(axis=1), 1e-12) / 2 - 0.5) + 1)
+    k = k.astype(np.int64)
+    while True:
+        todo = ~fits(k) & (k.max(axis=1) > 1)
+        if not todo.any():
+            break
+        kx, ky = k[todo, 0], k[todo, 1]  # the wider first, both alike when equal (no favoured axis)
+        k[todo] = np.stack([np.maximum(1, kx - 2 * (kx >= ky)), np.maximum(1, ky - 2 * (ky >= kx))], axis=1)
+    k[(k == 1).all(axis=1) | ~fits(k)] = 0
+    return k
 
 
-def _gaussian_width(uv: np.ndarray, shape) -> tuple[int, int]:
-    """Step 2, "gaussian" (reference §6.1 step 4): odd width 2 ceil(d/2 + 1) - 1 from the largest step d; 0 (no
-    blur) when texels are under 1.5 px."""
+def _gaussian_width(uv: np.ndarray, shape) -> np.ndarray:
+    """Step 2, "gaussian" (reference §6.1 step 4): every texel's odd width 2 ceil(d/2 + 1) - 1 from the view's
+    largest step d; 0 (no blur) when texels are under 1.5 px."""
     steps = _pixel_steps(uv, shape)
     d = float(steps.max()) if steps.size else 0.0
     k = 0 if d <= 1.5 else 2 * math.ceil(d / 2 + 1) - 1
-    return k, k
+    return np.full((len(uv), 2), k, np.int64)
 
 
 def _box(img: np.ndarray, k: tuple[int, int]) -> np.ndarray:
@@ -287,9 +301,9 @@ def _gaussian(img: np.ndarray, k: tuple[int, int]) -> np.ndarray:
     return cv2.GaussianBlur(img, k, 0, borderType=cv2.BORDER_REFLECT)
 
 
-# step 2's methods: (the filter's (kx, ky) from a view's texel pixels (uv, grid shape), the filter) (colour-science
-# style dispatch)
-FOOTPRINTS = {"point": (lambda uv, shape: (0, 0), None), "cell": (_cell_widths, _box),
+# step 2's methods: (each texel's filter widths (n, 2) (kx, ky) from a view's texel pixels (uv, grid shape), the
+# filter) (colour-science style dispatch)
+FOOTPRINTS = {"point": (lambda uv, shape: np.zeros((len(uv), 2), np.int64), None), "cell": (_cell_widths, _box),
               "gaussian": (_gaussian_width, _gaussian)}
 
 
@@ -302,21 +316,46 @@ def _taps(shape, uv: np.ndarray) -> tuple:
     return bilinear_taps(shape, uv[:, 0], uv[:, 1])
 
 
-def _sample(img: np.ndarray, taps: tuple, footprint: str = "point", ksize: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at the points of `taps` (_taps), NaN outside the
-    image, after the footprint's filter of widths ksize (kx, ky; none when 0) (exact weights: cv2.remap would quantise the
-    sub-pixel position to 1/32 px)."""
+def _reader(shape, uv: np.ndarray, widths: np.ndarray) -> list:
+    """How a view's photos are read at the points uv (N, 2) with per-point filter widths (N, 2) (a FOOTPRINTS width
+    function's): one (points, taps, (kx, ky), window) per distinct width, computed once per view (_taps). A filtered
+    group is read from the window of the photo its boxes reach (its points' bounds, half a box and the lookup's pixel
+    more), which holds the same filtered values there as the whole photo: a paper-rig sample fills ~5% of a photo."""
+    H, W = shape[:2]
+    groups = []
+    for k in np.unique(widths, axis=0):
+        idx = np.flatnonzero((widths == k).all(axis=1))
+        p = uv[idx]
+        known = p[np.isfinite(p).all(axis=1)]
+        y0, y1, x0, x1 = 0, H, 0, W
+        if k.max() > 1 and len(known):
+            mx, my = int(k[0]) // 2 + 2, int(k[1]) // 2 + 2
+            x0, x1 = max(0, int(np.floor(known[:, 0].min())) - mx), min(W, int(np.ceil(known[:, 0].max())) + mx + 1)
+            y0, y1 = max(0, int(np.floor(known[:, 1].min())) - my), min(H, int(np.ceil(known[:, 1].max())) + my + 1)
+        groups.append((idx, _taps((y1 - y0, x1 - x0), p - np.array([x0, y0], np.float64)), (int(k[0]), int(k[1])),
+                       (slice(y0, y1), slice(x0, x1))))
+    return groups
+
+
+def _sample(img: np.ndarray, reader: list, footprint: str = "point") -> np.ndarray:
+    """Steps 2-3: (N, C) float32 bilinear values of img (H, W, C) at the points of `reader` (_reader), NaN outside
+    the image, each after the footprint's filter of its widths (kx, ky; none when both <= 1) (exact weights:
+    cv2.remap would quantise the sub-pixel position to 1/32 px)."""
     from reconstruction.stages.alignment import bilinear_at
 
-    if max(ksize) > 1:
-        img = FOOTPRINTS[footprint][1](img, tuple(ksize))
-    return bilinear_at(img, taps).astype(np.float32)
+    out = np.empty((sum(len(idx) for idx, *_ in reader), *img.shape[2:]), np.float32)
+    for idx, taps, k, window in reader:
+        part = img[window]
+        if max(k) > 1:
+            part = FOOTPRINTS[footprint][1](np.ascontiguousarray(part), k)
+        out[idx] = bilinear_at(part, taps)
+    return out
 
 
 def secondary_pixels(uv_primary: np.ndarray, alignment) -> np.ndarray:
     """Step 4: each texel's secondary pixel, the alignment map (H0, W0, 2) sampled bilinearly at its primary
     pixel (NaN where the map is unknown)."""
-    return _sample(alignment.map, _taps(alignment.map.shape, uv_primary))
+    return _sample(alignment.map, _reader(alignment.map.shape, uv_primary, np.zeros((len(uv_primary), 2), np.int64)))
 
 
 def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footprint: str = "cell",
@@ -361,11 +400,11 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
     shown = session.shown_patterns(0)
     learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]
 
-    views = [(_taps((cam.height, cam.width), uv), k) for cam, uv, k in zip(cams, (uv0, uv1), (k0, k1))]
+    views = [_reader((cam.height, cam.width), uv, k) for cam, uv, k in zip(cams, (uv0, uv1), (k0, k1))]
 
     def sampled(job):
         k, c = job
-        return _sample(photo(k, c), views[c][0], footprint, views[c][1])
+        return _sample(photo(k, c), views[c], footprint)
 
     # the photos are read, checked, corrected and sampled by a pool of threads (EXR decoding, sha256 and numpy
     # release the GIL): a paper-rig capture is 196 photos of 74 MB, each a long read on one core

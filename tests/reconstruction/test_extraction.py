@@ -188,6 +188,13 @@ def _grid_uv(R: int, step_x: float, step_y: float, turn_deg: float = 0.0) -> np.
     return np.stack([c * x - s * y + 100.0, s * x + c * y + 100.0], axis=1)
 
 
+def _widths(fn, uv, shape) -> tuple[int, int]:
+    """A width function's (kx, ky) on a grid where every texel gets the same."""
+    k = np.unique(fn(uv, shape), axis=0)
+    assert len(k) == 1, k
+    return int(k[0, 0]), int(k[0, 1])
+
+
 def test_footprint_widths():
     """Step 2's filter widths from a view's texel pixels: "cell" the largest odd k <= d along each image axis, d the
     cell's extent there (no photosite centre more than half a pixel outside the cell; none where both are 1: the mini
@@ -197,15 +204,37 @@ def test_footprint_widths():
 
     cell, gaussian, point = (FOOTPRINTS[f][0] for f in ("cell", "gaussian", "point"))
     for d, k in ((2.2, 0), (2.9, 0), (3.0, 3), (4.9, 3), (5.0, 5), (7.4, 7), (8.0, 7)):
-        assert cell(_grid_uv(4, d, d), (4, 4)) == ((k, k) if k else (0, 0)), d
-    assert cell(_grid_uv(4, 5.4, 3.4), (4, 4)) == (5, 3)  # a view foreshortened along y
-    assert cell(_grid_uv(4, 3.4, 1.8), (4, 4)) == (3, 1)
+        assert _widths(cell, _grid_uv(4, d, d), (4, 4)) == ((k, k) if k else (0, 0)), d
+    assert _widths(cell, _grid_uv(4, 5.4, 3.4), (4, 4)) == (5, 3)  # a view foreshortened along y
+    assert _widths(cell, _grid_uv(4, 3.4, 1.8), (4, 4)) == (3, 1)
     # turned by 45 degrees, a 6 px cell holds a 3 px box (its corner 2.1 px out along the diagonal), not a 5 px one
-    assert cell(_grid_uv(4, 6.0, 6.0, 45.0), (4, 4)) == (3, 3)
+    assert _widths(cell, _grid_uv(4, 6.0, 6.0, 45.0), (4, 4)) == (3, 3)
     for d, k in ((1.5, 0), (2.2, 5), (7.4, 9)):
-        assert gaussian(_grid_uv(4, d, 1.0), (4, 4)) == (k, k), d
+        assert _widths(gaussian, _grid_uv(4, d, 1.0), (4, 4)) == (k, k), d
     empty = np.full((16, 2), np.nan)
-    assert cell(empty, (4, 4)) == gaussian(empty, (4, 4)) == point(_grid_uv(4, 8, 8), (4, 4)) == (0, 0)
+    assert _widths(cell, empty, (4, 4)) == _widths(gaussian, empty, (4, 4)) == (0, 0)
+    assert _widths(point, _grid_uv(4, 8, 8), (4, 4)) == (0, 0)
+
+
+def test_cell_widths_follow_each_texels_cell():
+    """A perspective view's cells grow across the field (a tilted camera's near side): each texel's box is its own
+    cell's, so the larger cells are read whole and the smaller ones stay inside theirs; a texel whose neighbour's
+    pixel is unknown (off the photo) gets none (the unknown texel reads NaN whatever its width)."""
+    from reconstruction.stages.extraction import FOOTPRINTS
+
+    R = 8
+    steps = np.linspace(4.4, 6.4, R - 1)  # the step between columns j and j + 1 grows along x
+    x = np.r_[0.0, np.cumsum(steps)] + 50.0
+    jj, ii = np.meshgrid(np.arange(R), np.arange(R))
+    uv = np.stack([x[jj.ravel()], 50.0 + 6.0 * ii.ravel()], axis=1)
+    k = FOOTPRINTS["cell"][0](uv, (R, R)).reshape(R, R, 2)
+    d = np.gradient(x)  # each texel's own cell extent along x (central differences, one-sided at the ends)
+    want = np.where(d >= 5.0 / 1.02, 5, 3)
+    assert np.array_equal(k[0, :, 0], want) and set(want) == {3, 5}
+    assert (k[..., 1] == 5).all()
+    uv[R + 3] = np.nan
+    k = FOOTPRINTS["cell"][0](uv, (R, R)).reshape(R, R, 2)
+    assert (k[0, 3] == 0).all() and (k[1, 2] == 0).all() and (k[1, 4] == 0).all() and (k[3, 3] > 0).all()
 
 
 def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
@@ -214,7 +243,7 @@ def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
     cell's own value exactly, and with iid pixel noise sigma its error has the standard deviation of the weights'
     norm, sigma (6.5 / 49) (two overlapping 7 px boxes a side) against sigma / 2 at the centre alone ("point");
     the reference's Gaussian (9 px) takes the neighbours' values in."""
-    from reconstruction.stages.extraction import FOOTPRINTS, _sample, _taps
+    from reconstruction.stages.extraction import FOOTPRINTS, _reader, _sample, _taps
 
     R, d, sigma = 16, 8, 0.1
     rng = np.random.default_rng(0)
@@ -225,10 +254,20 @@ def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
     inner = ((ii > 0) & (ii < R - 1) & (jj > 0) & (jj < R - 1)).ravel()  # away from the image's border
 
     def read(footprint, image):
-        return _sample(image, _taps(image.shape, uv), footprint, FOOTPRINTS[footprint][0](uv, (R, R)))[:, 0] - cells.ravel()
+        reader = _reader(image.shape, uv, FOOTPRINTS[footprint][0](uv, (R, R)))
+        return _sample(image, reader, footprint)[:, 0] - cells.ravel()
 
-    assert FOOTPRINTS["cell"][0](uv, (R, R)) == (7, 7) and FOOTPRINTS["gaussian"][0](uv, (R, R)) == (9, 9)
+    assert _widths(FOOTPRINTS["cell"][0], uv, (R, R)) == (7, 7)
+    assert _widths(FOOTPRINTS["gaussian"][0], uv, (R, R)) == (9, 9)
     assert np.abs(read("cell", img)).max() < 1e-6
+    # read from the window the boxes reach, the same bits as the whole image filtered (on the image's border too)
+    from reconstruction.stages.alignment import bilinear_at
+    from reconstruction.stages.extraction import _box
+
+    edge = np.r_[uv[:R], [[0.0, 0.0], [R * d - 1.0, 3.0], [np.nan, 5.0]]]
+    whole = bilinear_at(_box(img, (7, 7)), _taps(img.shape, edge))
+    np.testing.assert_array_equal(_sample(img, _reader(img.shape, edge, np.full((len(edge), 2), 7)), "cell"),
+                                  whole.astype(np.float32))
     assert np.abs(read("gaussian", img)[inner]).max() > 1e-2  # sigma 1.7 px: ~2% of a neighbour one unit off
     noisy = (img + sigma * rng.standard_normal(img.shape)).astype(np.float32)
     # 196 inner texels: the sample standard deviation is within ~15% of the true one
