@@ -19,7 +19,7 @@ from twin.batch import LOG_FOLDER, RECORD_FILE, BatchOptions, Job, outcomes_tabl
 from twin.outputs import Kind, claim_output
 
 from reconstruction.output import ReconstructionFolder
-from reconstruction.pipeline import ReconstructConfig, _jsonable
+from reconstruction.pipeline import ReconstructConfig, _jsonable, network_input
 
 # the scores shown in the table: (header, key of the task's result)
 COLUMNS = [("texels", "texels"), ("align px", "alignment.median_px"), ("normal deg", "maps.normal_deg.median"),
@@ -80,9 +80,7 @@ def reconstruct_many(captures_dir, output, config: ReconstructConfig = Reconstru
     """Run the batch (module docstring); returns twin.batch.Outcome per capture and writes OUT/batch.json."""
     out = Path(output)
     caps = find_captures(captures_dir)
-    claim_output(out, RECONSTRUCT_MANY_FOLDER, [("the captures folder", captures_dir),
-                                                ("the network's run folder", None if config.network == "pretrained"
-                                                 else config.network)])
+    claim_output(out, RECONSTRUCT_MANY_FOLDER, [("the captures folder", captures_dir), network_input(config.network)])
     want = {k: v for k, v in asdict(config).items() if k in TASK_SETTINGS}
     if _config(want) != config:
         raise ValueError(f"reconstruct-many passes only {', '.join(TASK_SETTINGS)} to its tasks; the other "

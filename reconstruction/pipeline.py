@@ -126,6 +126,12 @@ def choose_holdout(lines: np.ndarray, valid: np.ndarray) -> int:
     return int(np.argmax(np.median(lines[valid].mean(axis=2), axis=0)))
 
 
+def network_input(network: str) -> tuple[str, str | None]:
+    """The network a reconstruction reads, as an input its output must stay out of (twin.outputs.claim_output): a
+    `hemicube train` run folder; the shipped one ("pretrained") lies in the package, no output's concern."""
+    return "the network's run folder", None if network == "pretrained" else network
+
+
 def check_output(out: Path, capture: Path, network: str = "pretrained") -> None:
     """An output folder is owned, never clobbered (twin.outputs): `reconstruct` replaces only a reconstruction
     folder (its summary file names it) or an empty folder, and never writes into, over or around the capture it
@@ -133,9 +139,7 @@ def check_output(out: Path, capture: Path, network: str = "pretrained") -> None:
     written."""
     from twin.outputs import claim_output
 
-    claim_output(out, RECONSTRUCTION_FOLDER, [("the capture being read", capture),
-                                              ("the network's run folder", None if network == "pretrained" else
-                                               network)])
+    claim_output(out, RECONSTRUCTION_FOLDER, [("the capture being read", capture), network_input(network)])
 
 
 def check_settings(config: ReconstructConfig, session, rig):
