@@ -114,15 +114,21 @@ _KINDS = {"ceramic_like": ceramic_like, "brushed_like": brushed_like, "satin_lik
           "paper_like": paper_like}
 
 
-def unseen_maps(kind: str, seed: int, resolution: int = RESOLUTION) -> SVBRDFMaps:
-    """One composition of `kind` (UNSEEN_KINDS), drawn from np.random.default_rng([seed, index of kind])."""
+def unseen_maps(kind: str, seed: int, resolution: int = RESOLUTION, relief: tuple[float, float] | None = None
+                ) -> SVBRDFMaps:
+    """One composition of `kind` (UNSEEN_KINDS), drawn from np.random.default_rng([seed, index of kind]). `relief`
+    (feature mm, largest tilt in degrees) replaces the kind's normals by a relief of that scale, drawn next from the
+    same generator: finer than a texel, it is outside the band limit above (docs/accuracy.md, Known limits, "Relief
+    finer than a texel"); `resolution` must then resolve it (512 for 2 mm features over 120 mm)."""
     rng = np.random.default_rng([seed, UNSEEN_KINDS.index(kind)])
     rho_d, rho_s, alpha, normal, phi = _KINDS[kind](rng, resolution)
+    if relief is not None:
+        normal = _normals_from_height(_field(rng, resolution, relief[0]), relief[1])
     return SVBRDFMaps(rho_d=np.clip(rho_d, 0, 1), rho_s=np.clip(rho_s, 0, 20), alpha=alpha, normal=normal,
                       tangent=_tangent(phi, normal), transparency=np.zeros((resolution, resolution)),
                       size_mm=BUILTIN_SIZE_MM, name=f"{kind}@{seed}")
 
 
-def write_unseen(kind: str, seed: int, directory) -> str:
-    """Write `unseen_maps(kind, seed)` as an OpenSVBRDF map folder; returns its path."""
-    return str(write_maps(unseen_maps(kind, seed), directory))
+def write_unseen(kind: str, seed: int, directory, **options) -> str:
+    """Write `unseen_maps(kind, seed, **options)` as an OpenSVBRDF map folder; returns its path."""
+    return str(write_maps(unseen_maps(kind, seed, **options), directory))

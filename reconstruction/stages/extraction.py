@@ -25,14 +25,18 @@ Per photo and camera (reference §6.3, with the differences stated):
      "point": no filter, the value at the texel centre (step 3), the ~4 photosites around it.
      "cell" (default): the mean over the box of pixels, odd widths kx x ky along the image's axes, whose photosites
      overlap the texel's cell (the parallelogram its two grid steps span in that view): no photosite's centre more
-     than half a pixel outside it, step 3's bilinear lookup included; each texel's own box, from its own cell (no
-     filter where both widths are 1: the mini rig's ~2 px a texel at 48^2 and the paper rig's ~1 px at 1024^2, read
-     at the centre; the paper rig at 192^2: 5 x 5 in the primary view, 5.4 px a texel, mostly 5 x 3 in the
-     secondary). Why: a texel spanning many photosites is measured by all of them instead of the ~4 a bilinear lookup
+     than half a pixel outside it, step 3's bilinear lookup included; each texel's own box, from its own cell (the
+     paper rig at 192^2: 5 x 5 in the primary view, 5.4 px a texel, mostly 5 x 3 in the secondary). Where no box
+     fits (both widths 1: cells under 3 px, the mini rig's ~2.1 px a texel at 48^2) but a step is over 1.5 px, the
+     mean of the bilinear photo at the midpoints of an m_c x m_r split of the cell (m = ceil of the step along that
+     grid axis: midpoints no more than a pixel apart), the same mean over the cell by the midpoint rule, each view
+     through its own steps; under 1.5 px (the paper rig's ~1 px at 1024^2) the centre's lookup already spans the
+     cell. Why: a texel spanning many photosites is measured by all of them instead of the ~4 a bilinear lookup
      reads (the noise's standard deviation ~sigma / k against ~2 sigma / 3), and a weak, rough lobe (paper stock's,
-     fabric's: 0.5-2% of a photo) is decided by that noise: its alpha error grows in proportion to the photos' noise
-     per texel (docs/accuracy.md: paper on the paper rig at 192^2, alpha 13.0 / 13.7% at the centre, 7.2 / 8.8% over
-     the cell). Why per texel: one width for a whole view is its narrowest cell's, and the secondary view's cells,
+     fabric's: 0.5-2% of a photo) is decided by that noise: its alpha error grows in proportion to the photos'
+     noise per texel (docs/accuracy.md: paper on the paper rig at 192^2, alpha 13.0 / 13.7% at the centre, 7.2 /
+     8.8% over the cell; the mini rig's held-back paper@9003, alpha_y 10.9 % at the centre, 9.4 % at the
+     midpoints). Why per texel: one width for a whole view is its narrowest cell's, and the secondary view's cells,
      read through the alignment map, are under 3 px at a few percent of the texels (the map's local stretches and
      the sample's rim): one width left the secondary view unfiltered and paper's alpha at 9.6 / 12.5%.
      Its limit: where the maps vary within a texel (maps finer than the grid) the cell's mean is not the BRDF at the
@@ -83,6 +87,7 @@ MIN_SAMPLE_PIXELS = 64
 # shrink across the field (the paper rig's secondary at 192^2: 2.98-3.4 px), and a hundredth of a texel is rounding,
 # not another texel's light
 CELL_SLACK = 0.01
+MIDPOINT_STEP = 1.5  # "cell" without a box: px of a texel's step above which its cell is read at midpoints
 READERS = 8  # threads that read photos at once (at most the CPUs): 8 x ~0.3 GB of photo in flight
 
 
@@ -280,6 +285,26 @@ def _cell_widths(uv: np.ndarray, shape) -> np.ndarray:
     return k
 
 
+def _cell_points(uv: np.ndarray, shape, widths: np.ndarray) -> np.ndarray:
+    """Step 2, "cell" where no box fits: each texel's midpoint counts (m_c, m_r) (n, 2) along the grid's columns and
+    rows, m = ceil of its pixel step that way, where its widths are (0, 0) and a step is over MIDPOINT_STEP px; (1, 1)
+    (the centre alone) elsewhere and where a step is unknown."""
+    steps = np.linalg.norm(_texel_jacobians(uv, shape), axis=1)  # (n, 2): along the grid's columns, rows
+    known = np.isfinite(steps).all(axis=1)
+    m = np.ones((len(uv), 2), np.int64)
+    on = known & (widths == 0).all(axis=1) & (np.nan_to_num(steps).max(axis=1) > MIDPOINT_STEP)
+    m[on] = np.ceil(steps[on]).astype(np.int64)
+    return m
+
+
+def _midpoints(m) -> np.ndarray:
+    """(m_c m_r, 2) the midpoints of an m_c x m_r split of a cell, in texel units (along its columns, rows) from its
+    centre."""
+    a = (np.arange(m[0]) + 0.5) / m[0] - 0.5
+    b = (np.arange(m[1]) + 0.5) / m[1] - 0.5
+    return np.stack(np.meshgrid(a, b), axis=-1).reshape(-1, 2)
+
+
 def _gaussian_width(uv: np.ndarray, shape) -> np.ndarray:
     """Step 2, "gaussian" (reference §6.1 step 4): every texel's odd width 2 ceil(d/2 + 1) - 1 from the view's
     largest step d; 0 (no blur) when texels are under 1.5 px."""
@@ -316,16 +341,23 @@ def _taps(shape, uv: np.ndarray) -> tuple:
     return bilinear_taps(shape, uv[:, 0], uv[:, 1])
 
 
-def _reader(shape, uv: np.ndarray, widths: np.ndarray) -> list:
+def _reader(shape, uv: np.ndarray, widths: np.ndarray, grid_shape=None) -> list:
     """How a view's photos are read at the points uv (N, 2) with per-point filter widths (N, 2) (a FOOTPRINTS width
-    function's): one (points, taps, (kx, ky), window) per distinct width, computed once per view (_taps). A filtered
+    function's): one (points, taps, (kx, ky), window, s) per distinct width, computed once per view (_taps). A filtered
     group is read from the window of the photo its boxes reach (its points' bounds, half a box and the lookup's pixel
-    more), which holds the same filtered values there as the whole photo: a paper-rig sample fills ~5% of a photo."""
+    more), which holds the same filtered values there as the whole photo: a paper-rig sample fills ~5% of a photo.
+    With the texels' `grid_shape`, "cell"'s texels without a box are read at their cells' s midpoints
+    (_cell_points): their taps are the midpoints', uv + J (a, b) with J the texel's own pixel steps."""
     H, W = shape[:2]
+    points = np.ones_like(widths) if grid_shape is None else _cell_points(uv, grid_shape, widths)
+    jac = None if grid_shape is None else np.nan_to_num(_texel_jacobians(uv, grid_shape))
     groups = []
-    for k in np.unique(widths, axis=0):
-        idx = np.flatnonzero((widths == k).all(axis=1))
+    for row in np.unique(np.concatenate([widths, points], axis=1), axis=0):
+        k, m = row[:2], row[2:]
+        idx = np.flatnonzero((widths == k).all(axis=1) & (points == m).all(axis=1))
         p = uv[idx]
+        if m.prod() > 1:
+            p = (p[:, None, :] + np.einsum("nij,sj->nsi", jac[idx], _midpoints(m))).reshape(-1, 2)
         known = p[np.isfinite(p).all(axis=1)]
         y0, y1, x0, x1 = 0, H, 0, W
         if k.max() > 1 and len(known):
@@ -333,7 +365,7 @@ def _reader(shape, uv: np.ndarray, widths: np.ndarray) -> list:
             x0, x1 = max(0, int(np.floor(known[:, 0].min())) - mx), min(W, int(np.ceil(known[:, 0].max())) + mx + 1)
             y0, y1 = max(0, int(np.floor(known[:, 1].min())) - my), min(H, int(np.ceil(known[:, 1].max())) + my + 1)
         groups.append((idx, _taps((y1 - y0, x1 - x0), p - np.array([x0, y0], np.float64)), (int(k[0]), int(k[1])),
-                       (slice(y0, y1), slice(x0, x1))))
+                       (slice(y0, y1), slice(x0, x1)), int(m.prod())))
     return groups
 
 
@@ -344,11 +376,11 @@ def _sample(img: np.ndarray, reader: list, footprint: str = "point") -> np.ndarr
     from reconstruction.stages.alignment import bilinear_at
 
     out = np.empty((sum(len(idx) for idx, *_ in reader), *img.shape[2:]), np.float32)
-    for idx, taps, k, window in reader:
+    for idx, taps, k, window, s in reader:
         part = img[window]
         if max(k) > 1:
             part = FOOTPRINTS[footprint][1](np.ascontiguousarray(part), k)
-        out[idx] = bilinear_at(part, taps)
+        out[idx] = bilinear_at(part, taps).reshape(len(idx), s, *img.shape[2:]).mean(axis=1)
     return out
 
 
@@ -400,7 +432,8 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
     shown = session.shown_patterns(0)
     learned_weights = capture_patterns(session, rig, [shown[k] for k in ix.learned])[:, upper, :]
 
-    views = [_reader((cam.height, cam.width), uv, k) for cam, uv, k in zip(cams, (uv0, uv1), (k0, k1))]
+    views = [_reader((cam.height, cam.width), uv, k, grid.shape if footprint == "cell" else None)
+             for cam, uv, k in zip(cams, (uv0, uv1), (k0, k1))]
 
     def sampled(job):
         k, c = job

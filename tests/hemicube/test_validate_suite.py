@@ -16,11 +16,7 @@ from twin.materials.samples import SUITE
 HELD_BACK = tuple(f"{name}@{9001 + k}" for k, name in enumerate(SUITE) if k % 2 == 0)
 # Samples that miss the goals today, and why (docs/accuracy.md, "Open"), by their full name: (reason, strict).
 # Strict: one that starts passing fails here until it is taken off this list.
-KNOWN_OPEN: dict = {
-    "paper@9003": ("weak rough lobes on bright stock (docs/accuracy.md, Known limits): its alpha sits at the goal and "
-                   "moves by points with a fraction of a pixel of alignment (8.7 % with the SIFT-started refit, "
-                   "10.9 % with the marker-started one) or another noise draw (12.2 % at capture seed 3)", True),
-}
+KNOWN_OPEN: dict = {}
 
 
 @pytest.fixture(scope="module")

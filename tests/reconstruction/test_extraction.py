@@ -237,6 +237,41 @@ def test_cell_widths_follow_each_texels_cell():
     assert (k[0, 3] == 0).all() and (k[1, 2] == 0).all() and (k[1, 4] == 0).all() and (k[3, 3] > 0).all()
 
 
+def test_cells_without_a_box_are_read_at_their_midpoints():
+    """Cells under 3 px (the mini rig's ~2.1 px a texel at 48^2) hold no box; over 1.5 px they are read at the midpoints
+    of an m x m split (m = ceil of the step), which is their mean over the cell: exact on a linear image (the
+    midpoints are symmetric about the centre and the lookup is exact on it), and iid pixel noise averaged over the
+    cell's ~5 photosites instead of the ~1-4 that the centre's lookup reads. Boxes (5.4 px) and ~1 px cells (the
+    paper rig at 1024^2) keep their reading; a texel next to an unknown one is read at its centre."""
+    from reconstruction.stages.extraction import FOOTPRINTS, _cell_points, _reader, _sample
+
+    cell = FOOTPRINTS["cell"][0]
+    for d, m in ((2.2, 3), (2.9, 3), (1.7, 2), (1.2, 1)):
+        uv = _grid_uv(4, d, d)
+        assert np.unique(_cell_points(uv, (4, 4), cell(uv, (4, 4))), axis=0).tolist() == [[m, m]], d
+    uv = _grid_uv(4, 5.4, 5.4)
+    assert np.unique(_cell_points(uv, (4, 4), cell(uv, (4, 4))), axis=0).tolist() == [[1, 1]]
+    uv = _grid_uv(4, 2.2, 2.2)
+    uv[5] = np.nan
+    m = _cell_points(uv, (4, 4), cell(uv, (4, 4))).reshape(4, 4, 2)
+    assert (m[0, 1] == 1).all() and (m[1, 0] == 1).all() and (m[3, 3] == 3).all()
+
+    R, d = 24, 2.2
+    uv = _grid_uv(R, d, d * 0.7, 20.0) - 80.0  # foreshortened and turned, as the secondary view's cells are
+    yy, xx = np.mgrid[0:80, 0:80].astype(np.float64)
+    linear = (0.3 * xx - 0.2 * yy + 40.0)[..., None].astype(np.float32)
+    grid = (R, R)
+    reader = _reader(linear.shape, uv, cell(uv, grid), grid)
+    assert {s for *_, s in reader} == {3 * 2}  # ceil(2.2) x ceil(1.54)
+    want = 0.3 * uv[:, 0] - 0.2 * uv[:, 1] + 40.0
+    np.testing.assert_allclose(_sample(linear, reader, "cell")[:, 0], want, rtol=0, atol=1e-4)
+    rng = np.random.default_rng(1)
+    noise = rng.standard_normal((80, 80, 1)).astype(np.float32)
+    at_midpoints = _sample(noise, reader, "cell")[:, 0]
+    at_centre = _sample(noise, _reader(noise.shape, uv, cell(uv, grid)), "cell")[:, 0]
+    assert at_midpoints.std() < 0.7 * at_centre.std()
+
+
 def test_the_cell_footprint_reads_its_own_cell_and_averages_the_noise():
     """Closed form: texels 8 px apart on an image that is constant over each texel's cell (another value per
     cell), centres between pixels as a grid's fall. "cell" (a 7 px box, then the bilinear lookup) returns each
