@@ -285,13 +285,13 @@ def _cell_widths(uv: np.ndarray, shape) -> np.ndarray:
     return k
 
 
-def _cell_points(uv: np.ndarray, shape, widths: np.ndarray) -> np.ndarray:
+def _cell_points(jac: np.ndarray, widths: np.ndarray) -> np.ndarray:
     """Step 2, "cell" where no box fits: each texel's midpoint counts (m_c, m_r) (n, 2) along the grid's columns and
-    rows, m = ceil of its pixel step that way, where its widths are (0, 0) and a step is over MIDPOINT_STEP px; (1, 1)
-    (the centre alone) elsewhere and where a step is unknown."""
-    steps = np.linalg.norm(_texel_jacobians(uv, shape), axis=1)  # (n, 2): along the grid's columns, rows
+    rows from its pixel steps `jac` (_texel_jacobians), m = ceil of its step that way, where its widths are (0, 0) and
+    a step is over MIDPOINT_STEP px; (1, 1) (the centre alone) elsewhere and where a step is unknown."""
+    steps = np.linalg.norm(jac, axis=1)  # (n, 2): along the grid's columns, rows
     known = np.isfinite(steps).all(axis=1)
-    m = np.ones((len(uv), 2), np.int64)
+    m = np.ones((len(jac), 2), np.int64)
     on = known & (widths == 0).all(axis=1) & (np.nan_to_num(steps).max(axis=1) > MIDPOINT_STEP)
     m[on] = np.ceil(steps[on]).astype(np.int64)
     return m
@@ -349,15 +349,15 @@ def _reader(shape, uv: np.ndarray, widths: np.ndarray, grid_shape=None) -> list:
     With the texels' `grid_shape`, "cell"'s texels without a box are read at their cells' s midpoints
     (_cell_points): their taps are the midpoints', uv + J (a, b) with J the texel's own pixel steps."""
     H, W = shape[:2]
-    points = np.ones_like(widths) if grid_shape is None else _cell_points(uv, grid_shape, widths)
-    jac = None if grid_shape is None else np.nan_to_num(_texel_jacobians(uv, grid_shape))
+    jac = None if grid_shape is None else _texel_jacobians(uv, grid_shape)
+    points = np.ones_like(widths) if jac is None else _cell_points(jac, widths)
     groups = []
     for row in np.unique(np.concatenate([widths, points], axis=1), axis=0):
         k, m = row[:2], row[2:]
         idx = np.flatnonzero((widths == k).all(axis=1) & (points == m).all(axis=1))
         p = uv[idx]
         if m.prod() > 1:
-            p = (p[:, None, :] + np.einsum("nij,sj->nsi", jac[idx], _midpoints(m))).reshape(-1, 2)
+            p = (p[:, None, :] + np.einsum("nij,sj->nsi", np.nan_to_num(jac[idx]), _midpoints(m))).reshape(-1, 2)
         known = p[np.isfinite(p).all(axis=1)]
         y0, y1, x0, x1 = 0, H, 0, W
         if k.max() > 1 and len(known):

@@ -243,17 +243,17 @@ def test_cells_without_a_box_are_read_at_their_midpoints():
     midpoints are symmetric about the centre and the lookup is exact on it), and iid pixel noise averaged over the
     cell's ~5 photosites instead of the ~1-4 that the centre's lookup reads. Boxes (5.4 px) and ~1 px cells (the
     paper rig at 1024^2) keep their reading; a texel next to an unknown one is read at its centre."""
-    from reconstruction.stages.extraction import FOOTPRINTS, _cell_points, _reader, _sample
+    from reconstruction.stages.extraction import FOOTPRINTS, _cell_points, _reader, _sample, _texel_jacobians
 
     cell = FOOTPRINTS["cell"][0]
     for d, m in ((2.2, 3), (2.9, 3), (1.7, 2), (1.2, 1)):
         uv = _grid_uv(4, d, d)
-        assert np.unique(_cell_points(uv, (4, 4), cell(uv, (4, 4))), axis=0).tolist() == [[m, m]], d
+        assert np.unique(_cell_points(_texel_jacobians(uv, (4, 4)), cell(uv, (4, 4))), axis=0).tolist() == [[m, m]], d
     uv = _grid_uv(4, 5.4, 5.4)
-    assert np.unique(_cell_points(uv, (4, 4), cell(uv, (4, 4))), axis=0).tolist() == [[1, 1]]
+    assert np.unique(_cell_points(_texel_jacobians(uv, (4, 4)), cell(uv, (4, 4))), axis=0).tolist() == [[1, 1]]
     uv = _grid_uv(4, 2.2, 2.2)
     uv[5] = np.nan
-    m = _cell_points(uv, (4, 4), cell(uv, (4, 4))).reshape(4, 4, 2)
+    m = _cell_points(_texel_jacobians(uv, (4, 4)), cell(uv, (4, 4))).reshape(4, 4, 2)
     assert (m[0, 1] == 1).all() and (m[1, 0] == 1).all() and (m[3, 3] == 3).all()
 
     R, d = 24, 2.2
