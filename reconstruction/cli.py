@@ -34,6 +34,40 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    """`hemicube compare TRUTH RECON`: the novel views' scoring (reconstruction.evaluation.novel_views) of any two
+    map folders, the truth box-filtered onto the second's grid; exit 1 when a goal is missed."""
+    import json
+
+    import twin
+    from twin.materials.samples import read_maps
+    from twin.optics.inputs import check_device
+
+    from reconstruction.evaluation.metrics import check, format_table, to_jsonable, truth_coverage
+    from reconstruction.evaluation.novel_views import novel_view_scores, summary_line, validation_set
+    from reconstruction.evaluation.validation import NOVEL_GOALS
+
+    device = check_device(args.device)
+    rig = twin.load_rig(args.rig)
+    truth, recon = read_maps(args.truth), read_maps(args.recon)
+    if recon.shape[0] != recon.shape[1]:
+        raise ValueError(f"{args.recon}: the maps to score must be square, got {recon.shape[0]} x {recon.shape[1]}")
+    scores = novel_view_scores(validation_set(rig), truth, recon, device=device,
+                               mask=truth_coverage(truth, recon.size_mm, recon.shape[0]))
+    rows = check({"novel": scores}, NOVEL_GOALS)
+    ok = all(r["passed"] for r in rows)
+    if args.json:
+        print(json.dumps(to_jsonable({"rig": rig.name, "truth": args.truth, "recon": args.recon, "passed": ok,
+                                      "thresholds": rows, "novel": scores}), indent=2))
+    else:
+        print(f"hemicube compare: {args.recon} against {args.truth} on rig {rig.name!r} ({recon.shape[0]}^2 texels "
+              f"over {recon.size_mm:g} mm)")
+        print(format_table(rows))
+        print("  " + summary_line(scores))
+        print("result:", "all goals met" if ok else "FAILED")
+    return 0 if ok else 1
+
+
 def cmd_train(args) -> int:
     from reconstruction.network.train import TrainConfig, train
 
@@ -190,6 +224,16 @@ def register(sub) -> None:
     s.add_argument("--break-lock", action="store_true", help=BREAK_LOCK_HELP)
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
+
+    s = sub.add_parser("compare", help="score two map folders against each other under the 560 novel views and "
+                       "lights (the truth box-filtered onto the second's grid)")
+    s.add_argument("truth", help="the true maps (a map folder: OpenSVBRDF or ours)")
+    s.add_argument("recon", help="the maps to score (e.g. a reconstruction's maps/), on a square grid")
+    s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder whose views and lights "
+                   "are used (default: %(default)s)")
+    s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
+    s.add_argument("--json", action="store_true", help="print every pair's scores as JSON instead of a table")
+    s.set_defaults(func=cmd_compare)
 
     from twin.batch import add_arguments
 

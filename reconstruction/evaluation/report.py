@@ -43,7 +43,7 @@ from twin.materials.samples import SVBRDFMaps, canonical_anisotropy
 from reconstruction.evaluation.metrics import (ANISOTROPY_RATIO, _angle_deg, _axis_angle_deg, _check_mask, _fmt_any, _fmt_value,
                       _tangent_error_deg, flatten_metrics, to_jsonable)
 
-__all__ = ["PANEL_KINDS", "Panel", "RenderPanel", "map_panels", "render_panel", "write_report"]
+__all__ = ["PANEL_KINDS", "FigurePanel", "Panel", "RenderPanel", "map_panels", "render_panel", "write_report"]
 
 DISPLAY_PERCENTILE = 99.5  # display exposure and error colour-bar top: robust to a few hot pixels
 PANEL_KINDS = ("rgb", "normal", "tangent", "alpha", "scalar")
@@ -156,6 +156,21 @@ def _auto_exposure(img: np.ndarray) -> float:
 def _rgb_display(img: np.ndarray, exposure: float) -> np.ndarray:
     bad = ~np.all(np.isfinite(img), axis=-1, keepdims=True)
     return np.where(bad, _GREY, _srgb(np.where(bad, 0.0, img) * exposure))
+
+
+@dataclass(frozen=True, eq=False)
+class FigurePanel:
+    """A picture drawn by its own function: draw(path) writes the PNG at `path` (atomically) and returns it
+    (e.g. reconstruction.evaluation.novel_views.directions_figure)."""
+
+    name: str
+    draw: object
+    caption: str = ""
+
+    def __post_init__(self):
+        _panel_name(self.name)
+        if not callable(self.draw):
+            raise TypeError(f"panel {self.name}: draw must be a function of the PNG's path")
 
 
 def _tangent_display(t: np.ndarray) -> np.ndarray:
@@ -340,6 +355,11 @@ def map_panels(truth: SVBRDFMaps, recon: SVBRDFMaps, mask=None,
 # --- the report folder ------------------------------------------------------------------------------
 
 
+def _is_table(v) -> bool:
+    """A list of rows (dicts), e.g. the novel views' 560 pairs: in metrics.json, counted in report.md."""
+    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
+
 def _md_cell(s: str) -> str:
     return str(s).replace("|", "\\|").replace("\n", " ")
 
@@ -355,8 +375,8 @@ def write_report(out_dir, *, title: str, metrics: dict, checks: list[dict], pane
     panels = list(panels)
     notes = [str(n) for n in notes]
     for p in panels:
-        if not isinstance(p, (Panel, RenderPanel)):
-            raise TypeError(f"panels must be Panel or RenderPanel, got {type(p).__name__}")
+        if not isinstance(p, (Panel, RenderPanel, FigurePanel)):
+            raise TypeError(f"panels must be Panel, RenderPanel or FigurePanel, got {type(p).__name__}")
     names = [p.name for p in panels]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -384,13 +404,18 @@ def write_report(out_dir, *, title: str, metrics: dict, checks: list[dict], pane
             md += [f"### {p.name}", ""] + ([p.caption, ""] if p.caption else [])
             md += [f"![{p.name}](images/{p.name}.png)", ""]
     md += ["", "## All metrics", "", "```text"]
-    md += [f"{k} = {_fmt_any(v)}" for k, v in flatten_metrics(metrics).items()]
+    md += [f"{k} = {len(v)} rows (metrics.json)" if _is_table(v) else f"{k} = {_fmt_any(v)}"
+           for k, v in flatten_metrics(metrics).items()]
     md += ["```", "", "metrics.json holds the same numbers (NaN as null, ±inf as \"inf\" / \"-inf\").", ""]
     text = re.sub(r"\n{3,}", "\n\n", "\n".join(md))  # one blank line between blocks
     # the whole folder at once: a failed or killed run leaves the previous report (or none), never a mix
     with atomic_folder(out, overwrite=True) as tmp:
         for p in panels:
-            _save_panel(p, tmp / "images" / f"{p.name}.png")
+            png = tmp / "images" / f"{p.name}.png"
+            if isinstance(p, FigurePanel):
+                p.draw(png)
+            else:
+                _save_panel(p, png)
         write_bytes_atomic(tmp / "metrics.json", blob)
         write_bytes_atomic(tmp / "report.md", text.encode())
     return {"metrics_json": out / "metrics.json", "report_md": out / "report.md",

@@ -31,7 +31,11 @@ def test_main_job_passes_its_thresholds(validate_dir, capsys):
         assert r.metric in report
     assert (validate_dir / "reconstruction" / "maps" / "normal_texture.exr").is_file()
     assert (validate_dir / "reconstruction" / "latent.exr").is_file()
-    assert sorted(p.name for p in (validate_dir / "report" / "images").iterdir())
+    images = {p.name for p in (validate_dir / "report" / "images").iterdir()}
+    assert {"novel_views.png", "novel_worst.png"} <= images
+    # the novel views (reconstruction.evaluation.novel_views): every pair in metrics.json, the summary printed
+    assert len(metrics["novel"]["pairs"]) == 560 and "novel views: SSIM mean" in out
+    assert "novel.pairs = 560 rows (metrics.json)" in report
     # the photos' weight in the fit is per frame of an exposure (reconstruction.pipeline: an inverse-variance weight)
     fit = json.loads((validate_dir / "reconstruction" / "reconstruction.json").read_text())["fit"]["config"]
     assert fit["lambda_lines"] == FitConfig().lambda_lines * DEFAULT_FRAMES

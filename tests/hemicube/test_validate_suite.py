@@ -4,6 +4,8 @@ file each, and the suite is the longest, so the main job's tests run beside it r
 """
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from reconstruction.evaluation.validation import thresholds_for
@@ -16,7 +18,12 @@ from twin.materials.samples import SUITE
 HELD_BACK = tuple(f"{name}@{9001 + k}" for k, name in enumerate(SUITE) if k % 2 == 0)
 # Samples that miss the goals today, and why (docs/accuracy.md, "Open"), by their full name: (reason, strict).
 # Strict: one that starts passing fails here until it is taken off this list.
-KNOWN_OPEN: dict = {}
+_NARROW_TAILS = ("novel views: the worst pairs look into the tail of narrow lobes (alpha 0.02-0.1), where the "
+                 "per-texel rendered radiance spreads 17 % about the truth's while the alpha median is within 1 %")
+_SUBTEXEL_WEAVE = ("novel views: a weave finer than the 2.15 mm texel, whose aggregate no single GGX lobe a texel "
+                   "renders (the truth's own maps box-filtered reach only 0.66 in the worst pair)")
+KNOWN_OPEN: dict = {"metal": (_NARROW_TAILS, True), "woven": (_SUBTEXEL_WEAVE, True),
+                    "woven@9007": (_SUBTEXEL_WEAVE, True)}
 
 
 @pytest.fixture(scope="module")
@@ -63,3 +70,8 @@ def test_suite_report_and_table(suite_run):
     report = suite_run["report"]  # OUTPUT/report/report.md
     assert report.name == "report.md" and all(name in report.read_text() for name in SUITE + HELD_BACK)
     assert len(list(report.parent.rglob("*.png"))) >= len(SUITE + HELD_BACK)
+    # every sample's novel views, with its worst view and light, in the report (the pairs stay in its own folder)
+    names = SUITE + HELD_BACK + UNSEEN_NAMES
+    assert report.read_text().count("novel views: SSIM mean") == len(names)
+    assert all("pairs" not in r["metrics"]["novel"] for r in json.loads((report.parent / "metrics.json").read_text())
+               ["samples"])

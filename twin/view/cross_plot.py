@@ -59,7 +59,7 @@ def _upscale(img: np.ndarray, s: int) -> np.ndarray:
     return np.repeat(np.repeat(img, s, axis=0), s, axis=1)
 
 
-def _save_tiles(tiles: list[tuple[np.ndarray, str]], output, scale: int,
+def save_tiles(tiles: list[tuple[np.ndarray, str]], output, scale: int,
                 colorbar: tuple[float, float] | None = None) -> Path:
     """Lay out (image, title) tiles on a grid and write a PNG of exactly computed size:
     ncols = ceil(sqrt(K)) tiles per row; each tile is (128*scale + TITLE_PX) x (192*scale) pixels,
@@ -120,7 +120,7 @@ def save_pattern_image(patterns, rig, output, index: int | None = None) -> Path:
         frames = list(range(k))
     w = patterns.weights
     tiles = [(cross_rgb(rig, w[i]), f"{i}: {patterns.names[i]}") for i in frames]
-    return _save_tiles(tiles, output, SCALE if len(tiles) == 1 else GRID_SCALE)
+    return save_tiles(tiles, output, SCALE if len(tiles) == 1 else GRID_SCALE)
 
 
 def save_cross_image(rig, values, output, title: str | None = None) -> Path:
@@ -129,4 +129,4 @@ def save_cross_image(rig, values, output, title: str | None = None) -> Path:
     values = np.asarray(values)
     _, span = normalise(values, rig.num_leds)
     bar = span if values.ndim == 1 else None
-    return _save_tiles([(cross_rgb(rig, values), title or "")], output, SCALE, colorbar=bar)
+    return save_tiles([(cross_rgb(rig, values), title or "")], output, SCALE, colorbar=bar)
