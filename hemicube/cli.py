@@ -21,6 +21,16 @@ def cmd_validate(args) -> int:
                           progress=not args.no_progress, anyway=args.anyway, frames=args.frames)
 
 
+def _version() -> str:
+    """The installed package's version (pyproject.toml's, through the package metadata)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hemicube-twin")
+    except PackageNotFoundError:
+        return "(not installed: run `make setup` or `pip install -e .`)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     import calibration.cli
     import hemicube.design
@@ -29,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
 
     p = argparse.ArgumentParser(prog="hemicube", description=__doc__)
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     twin.cli.register(sub)
     reconstruction.cli.register(sub)

@@ -147,7 +147,7 @@ def _options(parser: argparse.ArgumentParser, prefix=()):
         if isinstance(action, argparse._SubParsersAction):
             for name, sub in action.choices.items():
                 yield from _options(sub, prefix + (name,))
-        elif not isinstance(action, argparse._HelpAction):
+        elif not isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
             yield " ".join(prefix), action
 
 
