@@ -36,7 +36,7 @@ def cmd_reconstruct(args) -> int:
 
 def cmd_compare(args) -> int:
     """`hemicube compare TRUTH RECON`: the novel views' scoring (reconstruction.evaluation.novel_views) of any two
-    map folders, the truth box-filtered onto the second's grid; exit 1 when a goal is missed."""
+    map folders, the truth's radiance box-filtered onto the second's grid; exit 1 when a goal is missed."""
     import json
 
     import twin
@@ -226,7 +226,7 @@ def register(sub) -> None:
     s.set_defaults(func=cmd_reconstruct)
 
     s = sub.add_parser("compare", help="score two map folders against each other under the 560 novel views and "
-                       "lights (the truth box-filtered onto the second's grid)")
+                       "lights (the truth's radiance box-filtered onto the second's grid)")
     s.add_argument("truth", help="the true maps (a map folder: OpenSVBRDF or ours)")
     s.add_argument("recon", help="the maps to score (e.g. a reconstruction's maps/), on a square grid")
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder whose views and lights "

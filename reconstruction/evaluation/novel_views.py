@@ -137,6 +137,7 @@ def render(vset: ValidationSet, maps, device: str = "cpu", block: int = 1) -> np
     if h % block or w % block:
         raise ValueError(f"a {h} x {w} grid does not divide into blocks of {block} x {block} texels")
     pos = grid_positions(maps.size_mm, maps.shape, vset.rig.sample).reshape(-1, 3).astype(np.float32)
+    # twin.lumitexels' keywords, as reconstruction.evaluation.validation.map_parameters (which imports this module)
     params = dict(normal=maps.normal.reshape(-1, 3), tangent=maps.tangent.reshape(-1, 3),
                   rho_d=maps.rho_d.reshape(-1, 3), rho_s=maps.rho_s.reshape(-1, 3),
                   alpha_x=maps.alpha[..., 0].reshape(-1), alpha_y=maps.alpha[..., 1].reshape(-1),

@@ -60,7 +60,7 @@ def _upscale(img: np.ndarray, s: int) -> np.ndarray:
 
 
 def save_tiles(tiles: list[tuple[np.ndarray, str]], output, scale: int,
-                colorbar: tuple[float, float] | None = None) -> Path:
+               colorbar: tuple[float, float] | None = None) -> Path:
     """Lay out (image, title) tiles on a grid and write a PNG of exactly computed size:
     ncols = ceil(sqrt(K)) tiles per row; each tile is (128*scale + TITLE_PX) x (192*scale) pixels,
     with MARGIN_PX around and between tiles. `colorbar` (vmin, vmax) adds an inferno scale bar."""
