@@ -8,6 +8,8 @@ import errno
 import os
 import sys
 
+from twin.exitcodes import EXIT_CODES, EXIT_IO, EXIT_USAGE
+
 
 def cmd_validate(args) -> int:
     from hemicube.validate import run_suite, run_validation
@@ -19,6 +21,9 @@ def cmd_validate(args) -> int:
     return run_validation(rig=args.rig, sample=args.sample, device=args.device, as_json=args.json,
                           output=args.output, resolution=args.resolution, seed=args.seed,
                           progress=not args.no_progress, anyway=args.anyway, frames=args.frames)
+
+
+EPILOG = "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
 
 
 def _version() -> str:
@@ -36,9 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
     import hemicube.design
     import reconstruction.cli
     import twin.cli
-    from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
+    from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
 
-    p = argparse.ArgumentParser(prog="hemicube", description=__doc__)
+    p = argparse.ArgumentParser(prog="hemicube", description=__doc__, epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     twin.cli.register(sub)
@@ -56,10 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "the samples named, in parallel, and print one table (default: one sample, --sample)")
     s.add_argument("--jobs", type=int, help="suite samples run at a time (default: the number of cores)")
     s.add_argument("-o", "--output", help="folder for the capture, the reconstruction and the report (default: "
-                   "hemicube-validate/RIG_SAMPLE_seedSEED; with --suite, hemicube-validate/suite_RIG_seedSEED "
-                   "holding one folder per sample and report/)")
+                   "hemicube-validate/RIG_SAMPLE_seedSEED; with --suite, hemicube-validate/suite_RIG_seedSEED, "
+                   "plus the samples' names for a run of other samples, holding one folder per sample and report/)")
     s.add_argument("--resolution", type=int, help="texture grid texels per side (default: the pipeline's, 48)")
-    s.add_argument("--seed", type=int, default=1, help="the virtual capture's seed (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="the virtual capture's seed (default: %(default)s)")
     s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=FRAMES_HELP)
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.add_argument("--anyway", action="store_true", help="on the CPU, run even a capture estimated to take "
@@ -93,15 +99,19 @@ def _os_error_line(e: OSError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(argv)  # bad usage: argparse's message, exit 2
     try:
+        if getattr(args, "device", None) is not None:  # before any work: a device this machine lacks is one line
+            from twin.optics.inputs import check_device
+
+            check_device(args.device)
         return args.func(args)
     except (ValueError, FileExistsError, FileNotFoundError, KeyError) as e:  # every input error is a ValueError
         print(f"hemicube: error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     except OSError as e:  # the system's own refusal (a read-only place, a full disk): one line; a traceback is for bugs
         print(f"hemicube: error: {_os_error_line(e)}", file=sys.stderr)
-        return 2
+        return EXIT_IO
 
 
 if __name__ == "__main__":

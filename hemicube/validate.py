@@ -18,6 +18,7 @@ sample's map panels side by side (truth | reconstruction | error). Progress goes
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -154,7 +155,7 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
     docstring). Exit code 0 when every check and every threshold passes. On the CPU, a rig whose capture
     would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
     import twin
-    from reconstruction.evaluation.metrics import format_table
+    from reconstruction.evaluation.metrics import format_table, to_jsonable
     from twin.capture.plan import check_frames
     from twin.capture.runner import SAMPLE_RESOLUTION
     from twin.materials.samples import load_sample
@@ -179,10 +180,10 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
         "rig": rig_obj.name, "sample": sample, "device": device, "passed": ok,
         "reference_data": str(ref) if ref else None,
         "checks": [{**c.__dict__, "passed": c.passed} for c in checks],
-        "thresholds": rows, "metrics": metrics, "report": {k: str(v) for k, v in paths.items()},
+        "thresholds": rows, "metrics": metrics, "report": paths,
     }
-    if as_json:
-        print(json.dumps(report, indent=2, default=lambda o: None))
+    if as_json:  # strict JSON: paths as strings, NaN as null (reconstruction.evaluation.metrics.to_jsonable)
+        print(json.dumps(to_jsonable(report), indent=2, allow_nan=False))
         return 0 if ok else 1
     print(f"hemicube validate: rig {rig_obj.name!r} ({rig_obj.num_leds} LEDs), sample {sample!r}, device {device}")
     if ref is None:
@@ -212,6 +213,20 @@ def _x(frames: int) -> str:
     return "" if frames == 1 else f"_x{frames}"
 
 
+def suite_folder_name(rig: str, names, seed: int, frames: int) -> str:
+    """The default folder of a suite run: the whole suite's is suite_RIG_seedSEED; a run of other samples adds their
+    names (or, past 60 characters, their count and a digest of the list), so that two runs never share a folder."""
+    from twin.materials.samples import SUITE
+
+    base = f"suite_{rig}_seed{seed}{_x(frames)}"
+    if list(names) == list(SUITE):
+        return base
+    joined = "+".join(_sample_name(s) for s in names)
+    if len(joined) > 60:
+        joined = f"{len(names)}samples_" + hashlib.sha256("\n".join(map(str, names)).encode()).hexdigest()[:8]
+    return f"{base}_{joined}"
+
+
 def _suite_member(rig: str, sample: str, device: str, output: str, resolution, seed: int,
                   frames: int = DEFAULT_FRAMES) -> dict:
     """One suite sample in its own process: capture -> reconstruct -> score into `output`."""
@@ -237,12 +252,14 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
 
     import twin
     from twin.capture.plan import check_frames
-    from twin.materials.samples import SUITE
+    from twin.materials.samples import SUITE, check_sample
 
     names = list(names or SUITE)
+    for s in names:  # one line before any work, not an error per sample
+        check_sample(s)
     rig_obj = twin.load_rig(rig)
-    check_frames(frames)  # one line, not an error per sample
-    out = Path(output) if output else DEFAULT_ROOT / f"suite_{rig_obj.name}_seed{seed}{_x(frames)}"
+    check_frames(frames)
+    out = Path(output) if output else DEFAULT_ROOT / suite_folder_name(rig_obj.name, names, seed, frames)
     _claim(out, SUITE_FOLDER, rig, names)
     checks, _ = _self_checks(rig_obj, device)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(names)))
@@ -276,10 +293,11 @@ def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int
     checks, ordered, report, ok = res["checks"], res["samples"], res["report"], res["passed"]
     names = [r["sample"] for r in ordered]
     if as_json:
-        print(json.dumps({"rig": res["rig"], "device": device, "passed": ok, "report": str(report),
-                          "checks": [{**c.__dict__, "passed": c.passed} for c in checks],
-                          "samples": [_without_pairs(r) for r in ordered]},
-                         indent=2, default=lambda o: None))
+        from reconstruction.evaluation.metrics import to_jsonable
+
+        print(json.dumps(to_jsonable({"rig": res["rig"], "device": device, "passed": ok, "report": report,
+                                      "checks": [{**c.__dict__, "passed": c.passed} for c in checks],
+                                      "samples": [_without_pairs(r) for r in ordered]}), indent=2, allow_nan=False))
         return 0 if ok else 1
     print(f"hemicube validate --suite: rig {res['rig']!r}, {len(names)} samples, device {device}")
     _print_checks(checks)

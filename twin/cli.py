@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.exitcodes import EXIT_IO
+
 RIG_HELP = "built-in rig (paper, mini) or rig folder (default: %(default)s)"
 
 
@@ -133,7 +135,7 @@ def cmd_capture(args) -> int:
     bad = verify(out)
     if bad:
         print(f"hemicube: error: {len(bad)} file(s) fail their checksum: {bad[:5]}", file=sys.stderr)
-        return 1
+        return EXIT_IO
     print(f"capture complete: {out} (manifest verified)")
     return 0
 
@@ -199,7 +201,7 @@ def _pattern_image_args(s) -> None:
 
 def register(sub) -> None:
     """Add the twin's sub-commands to the front's parser."""
-    from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
+    from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
     from twin.lock import BREAK_LOCK_HELP
 
     rig = sub.add_parser("rig", help="inspect, import and export rigs").add_subparsers(dest="rig_command",
@@ -253,7 +255,7 @@ def register(sub) -> None:
                    "--perturb`'s truth/), while the capture records --rig (its calibration)")
     s.add_argument("--sample", default="ramps", help="built-in sample (`hemicube samples list`) or a folder of "
                    "OpenSVBRDF maps (default: %(default)s)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the sensor noise and of seeded samples "
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the sensor noise and of seeded samples "
                    "(default: %(default)s)")
     s.add_argument("--resolution", type=int, default=128, help="texels per side of a built-in sample's maps "
                    "(default: %(default)s)")

@@ -41,6 +41,10 @@ def test_main_job_passes_its_thresholds(validate_dir, capsys):
     assert fit["lambda_lines"] == FitConfig().lambda_lines * DEFAULT_FRAMES
 
 
+def _not_json(token: str):
+    raise AssertionError(f"{token} is not JSON")
+
+
 def test_validate_any_map_folder(tmp_path, capsys):
     """`--sample DIR`: a folder of OpenSVBRDF maps (here brushed_metal written out), at a small grid: it is
     held to the rig's goals (reconstruction.evaluation.validation.GOALS: never to no thresholds), and the exit code says
@@ -51,8 +55,9 @@ def test_validate_any_map_folder(tmp_path, capsys):
     out = tmp_path / "v"
     rc = hemicube.cli.main(["validate", "--sample", str(maps), "--resolution", "16", "-o", str(out), "--no-progress",
                             "--json"])
-    doc = json.loads(capsys.readouterr().out)
+    doc = json.loads(capsys.readouterr().out, parse_constant=_not_json)  # strict JSON: no NaN, no Infinity
     assert [r["metric"] for r in doc["thresholds"]] == [g.metric for g in GOALS["mini"]]
+    assert all(isinstance(v, str) for v in doc["report"]["images"].values())  # paths as strings, not reprs
     assert rc == (0 if doc["passed"] else 1)
     assert doc["metrics"]["maps"]["normal_deg"]["median"] >= 0
     assert (out / "report" / "report.md").is_file()

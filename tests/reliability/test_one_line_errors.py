@@ -1,4 +1,4 @@
-"""One line, exit code 2, and nothing half-written: a setting out of range is refused before any work (no stage
+"""One line, exit code 2 (3 for the system's refusals), and nothing half-written: a setting out of range is refused before any work (no stage
 folder, no output); a pattern file of another format is refused by name; a read-only place and a full disk are named
 with their cause in words. CI runs as root, whom no file mode stops, and cannot fill a disk on demand, so the
 operating system's refusals (EROFS, EACCES, ENOSPC) are injected in this process at the calls the writers make
@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from twin.atomic import is_leftover
+from twin.exitcodes import EXIT_IO, EXIT_USAGE
 from twin.capture.session import CaptureSession
 from twin.lock import LOCK
 from reconstruction.output import ALIGNMENT, MEASUREMENTS, STAGES, stages_folder
@@ -147,8 +148,9 @@ def _leftovers(folder: Path) -> list[Path]:
     return [p for p in folder.rglob("*") if is_leftover(p.name)]
 
 
-def _one_line(rc: int, err: list[str], *parts: str) -> str:
-    assert rc == 2 and len(err) == 1 and err[0].startswith("hemicube: error: "), err
+def _one_line(rc: int, err: list[str], *parts: str, code: int = EXIT_USAGE) -> str:
+    """The one line of an error: exit 2 for bad input, 3 (code=EXIT_IO) for the system's refusal of a write."""
+    assert rc == code and len(err) == 1 and err[0].startswith("hemicube: error: "), err
     for part in parts:
         assert part in err[0], err
     return err[0]
@@ -205,7 +207,7 @@ def test_capture_into_a_read_only_place(tmp_path, cli, monkeypatch, code):
     read_only(monkeypatch, place, code)
     out = place / "cap"
     rc, err = cli(*CAPTURE_ARGS, "-o", out)
-    _one_line(rc, err, f"{out}: {CAUSES[code]}")
+    _one_line(rc, err, f"{out}: {CAUSES[code]}", code=EXIT_IO)
     monkeypatch.undo()
     assert list(place.iterdir()) == []
 
@@ -218,7 +220,7 @@ def test_reconstruct_into_a_read_only_place(capture, tmp_path, cli, monkeypatch,
     out = place / "recon"
     rc, err = cli("reconstruct", capture, "-o", out, "--no-progress")
     # the first thing written is the stage folder beside OUT (reconstruction.output)
-    _one_line(rc, err, f"{stages_folder(out)}: {CAUSES[code]}")
+    _one_line(rc, err, f"{stages_folder(out)}: {CAUSES[code]}", code=EXIT_IO)
     monkeypatch.undo()
     assert list(place.iterdir()) == []
 
@@ -247,7 +249,7 @@ def test_a_disk_that_fills_while_a_raw_frame_is_written(capture, capture_copy, c
     # the disk fills in the second exposure's frame of the second photo taken
     full_disk(monkeypatch, capture_copy, lambda p: Path(p).name.startswith(f".{todo[1]}_e1."))
     rc, err = cli(*CAPTURE_ARGS, "-o", capture_copy)
-    _one_line(rc, err, str(capture_copy), "no space left on device; free some space and run the command again")
+    _one_line(rc, err, str(capture_copy), "no space left on device; free some space and run the command again", code=EXIT_IO)
     monkeypatch.undo()
 
     session = CaptureSession.open(capture_copy)
@@ -271,7 +273,7 @@ def test_reconstruct_on_a_disk_that_fills(capture, tmp_path, cli, monkeypatch):
     stages = stages_folder(out)
     full_disk(monkeypatch, tmp_path, lambda p: Path(p).name.startswith(f".{MEASUREMENTS}."))
     rc, err = cli(*argv)
-    _one_line(rc, err, f"{stages / MEASUREMENTS}: no space left on device; free some space")
+    _one_line(rc, err, f"{stages / MEASUREMENTS}: no space left on device; free some space", code=EXIT_IO)
     monkeypatch.undo()
     assert list(tmp_path.iterdir()) == [stages]
     assert sorted(p.name for p in stages.iterdir()) == [ALIGNMENT, STAGES]
@@ -280,6 +282,6 @@ def test_reconstruct_on_a_disk_that_fills(capture, tmp_path, cli, monkeypatch):
     before = digest(stages)
     full_disk(monkeypatch, tmp_path, lambda p: True)
     rc, err = cli(*argv)
-    _one_line(rc, err, f"{stages / LOCK}: no space left on device")
+    _one_line(rc, err, f"{stages / LOCK}: no space left on device", code=EXIT_IO)
     monkeypatch.undo()
     assert digest(stages) == before and list(tmp_path.iterdir()) == [stages]

@@ -29,10 +29,11 @@ from pathlib import Path
 from twin.batch import LOG_FOLDER, RECORD_FILE, BatchOptions, Job, outcomes_table, run_batch
 from twin.outputs import Kind, claim_output
 
+from .plan import DEFAULT_SEED
 from .session import CaptureError, CaptureSession
 
 KEYS = {"name", "rig", "seed", "resolution", "patterns", "folder"}
-DEFAULTS = {"rig": "mini", "seed": 0, "resolution": 128, "patterns": None}
+DEFAULTS = {"rig": "mini", "seed": DEFAULT_SEED, "resolution": 128, "patterns": None}
 # OUT, resumed (twin.outputs): its batch.json names the samples file (reconstruct-many's names its captures)
 CAPTURE_MANY_FOLDER = Kind("a capture-many folder", (RECORD_FILE,), field="samples")
 

@@ -38,6 +38,9 @@ MAX_FRAMES_PER_PHOTO = 16  # and the HDR merge takes 16 frames at most (twin.cam
 # every alpha, rho_d and normal median improved and fabric's compositions met the goals (docs/accuracy.md). The real
 # device takes each exposure four times, the shortest eight (docs/performance.md has the capture times).
 DEFAULT_FRAMES = 4
+# the capture's seed (sensor noise, seeded samples) when none is given: the same for `hemicube capture`,
+# `capture-many` and `validate`, whose documented figures use it (docs/accuracy.md)
+DEFAULT_SEED = 1
 # The shortest exposure is taken twice as often (ours): it alone measures the brightest part of a photo, which
 # saturates the longer ones, so that part had a third of the photo's frames; on a bright stock (paper's, rho_d ~0.85)
 # that is where a weak lobe is, measured by 20,000 e- a photosite (0.6-0.9% shot noise; docs/accuracy.md). The extra

@@ -634,18 +634,29 @@ def sample_ranges(name: str, resolution: int = 64, seed: int = 0) -> dict:
     return {**{k: [round(v[0], 4), round(v[1], 4)] for k, v in r.items()}, "description": CHARACTER[name]}
 
 
+def _builtin_name(name_or_dir) -> tuple[str, int] | None:
+    """(name, seed) of a built-in sample's name or "NAME@SEED", else None."""
+    if isinstance(name_or_dir, str) and name_or_dir in BUILTIN_SAMPLES:
+        return name_or_dir, 0
+    if isinstance(name_or_dir, str) and "@" in name_or_dir:
+        name, _, seed = name_or_dir.partition("@")
+        if name in BUILTIN_SAMPLES and seed.isdigit():
+            return name, int(seed)
+    return None
+
+
+def check_sample(name_or_dir) -> None:
+    """A SampleError unless `name_or_dir` is what load_sample reads (a built-in name, NAME@SEED or an existing
+    folder), found without building or reading any maps: a run of many samples checks every name before any work."""
+    if _builtin_name(name_or_dir) is None and not Path(name_or_dir).is_dir():
+        raise SampleError(f"{str(name_or_dir)!r} is neither a built-in sample ({', '.join(BUILTIN_SAMPLES)}) "
+                          "nor an existing map folder")
+
+
 def load_sample(name_or_dir, resolution: int = 128) -> SVBRDFMaps:
     """A built-in sample by name (BUILTIN_SAMPLES, at `resolution`, seed 0), or "NAME@SEED" for another seed
     (another composition of the same sample: the held-back variants of the material suite), or a map folder
     (read_maps; `resolution` is then ignored: the folder's maps are used as they are)."""
-    if isinstance(name_or_dir, str) and name_or_dir in BUILTIN_SAMPLES:
-        return builtin_sample(name_or_dir, resolution)
-    if isinstance(name_or_dir, str) and "@" in name_or_dir:
-        name, _, seed = name_or_dir.partition("@")
-        if name in BUILTIN_SAMPLES and seed.isdigit():
-            return builtin_sample(name, resolution, int(seed))
-    path = Path(name_or_dir)
-    if not path.is_dir():
-        raise SampleError(f"{str(name_or_dir)!r} is neither a built-in sample ({', '.join(BUILTIN_SAMPLES)}) "
-                          "nor an existing map folder")
-    return read_maps(path)
+    check_sample(name_or_dir)
+    builtin = _builtin_name(name_or_dir)
+    return builtin_sample(builtin[0], resolution, builtin[1]) if builtin else read_maps(Path(name_or_dir))
