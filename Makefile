@@ -22,7 +22,7 @@ export MPLBACKEND ?= Agg
 export DRJIT_CACHE_DIR ?= $(CURDIR)/.cache/drjit
 export GENICAM_CACHE_V3_5 ?= $(CURDIR)/.cache/genicam
 
-.PHONY: setup validate test test-fast
+.PHONY: setup validate test test-fast api
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml
@@ -46,3 +46,7 @@ test: setup
 FAST_MARKERS ?= not e2e and not slow
 test-fast: setup
 	$(BIN)/python -m pytest -q --durations=10 $(PYTEST_WORKERS) -m "$(FAST_MARKERS)" $(PYTEST_ARGS)
+
+# the API reference from the docstrings, into api/ (not committed; tests/test_api.py builds it too)
+api: setup
+	$(BIN)/python -m hemicube.apidoc -o api

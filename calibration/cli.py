@@ -35,9 +35,16 @@ def cmd_calibrate(args) -> int:
     return 1 if missed and args.validate else 0
 
 
+# the sub-commands this package adds and their one-line help: what `hemicube --help` lists without importing
+# the package's heavy modules (hemicube.cli.build_parser)
+COMMANDS = {
+    "calibrate": "calibrate from photographs of targets in the twin; write a calibrated rig folder and a report"
+                 " scored against the truth (built: cameras, vignetting, LEDs, colour)",
+}
+
+
 def register(sub) -> None:
-    s = sub.add_parser("calibrate", help="calibrate from photographs of targets in the twin; write a calibrated rig "
-                       "folder and a report scored against the truth (built: cameras, vignetting, LEDs, colour)")
+    s = sub.add_parser("calibrate", help=COMMANDS["calibrate"])
     s.add_argument("what", nargs="+", choices=(*STAGES, "all"), help="what to calibrate. Several (or all): each "
                    "in the order cameras, vignetting, colour, leds, on the rig the ones before it calibrated, against "
                    "one true device with all their errors")

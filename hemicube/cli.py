@@ -12,15 +12,18 @@ from twin.exitcodes import EXIT_CODES, EXIT_IO, EXIT_USAGE
 
 
 def cmd_validate(args) -> int:
+    from hemicube.junit import check_junit_path
     from hemicube.validate import run_suite, run_validation
 
+    if args.junit is not None:
+        check_junit_path(args.junit)
     if args.suite is not None:
         return run_suite(args.suite, rig=args.rig, device=args.device, output=args.output,
                          resolution=args.resolution, seed=args.seed, jobs=args.jobs, as_json=args.json,
-                         frames=args.frames)
+                         frames=args.frames, junit=args.junit)
     return run_validation(rig=args.rig, sample=args.sample, device=args.device, as_json=args.json,
                           output=args.output, resolution=args.resolution, seed=args.seed,
-                          progress=not args.no_progress, anyway=args.anyway, frames=args.frames)
+                          progress=not args.no_progress, anyway=args.anyway, frames=args.frames, junit=args.junit)
 
 
 EPILOG = "exit codes:\n" + "\n".join(f"  {k}  {v}" for k, v in EXIT_CODES.items())
@@ -36,28 +39,51 @@ def _version() -> str:
         return "(not installed: run `make setup` or `pip install -e .`)"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    import calibration.cli
-    import hemicube.design
-    import reconstruction.cli
-    import twin.cli
-    from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
+# the commands this module adds (each package's cli module has its own COMMANDS: PACKAGES)
+COMMANDS = {"validate": "the main job: check the twin end to end and report", "bench": "benchmarks; print JSON"}
+# the packages whose cli module adds commands to the front, in the order `--help` lists them: each has COMMANDS (their
+# names and one-line help, light to import) and register(sub)
+PACKAGES = ("twin.cli", "reconstruction.cli", "calibration.cli", "hemicube.design")
 
+
+def _front() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     p = argparse.ArgumentParser(prog="hemicube", description=__doc__, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = p.add_subparsers(dest="command", required=True)
-    twin.cli.register(sub)
-    reconstruction.cli.register(sub)
-    calibration.cli.register(sub)
-    hemicube.design.register(sub)
+    return p, p.add_subparsers(dest="command", required=True)
 
-    s = sub.add_parser("validate", help="the main job: check the twin end to end and report")
+
+def overview_parser() -> argparse.ArgumentParser:
+    """The front alone: every command's name and help, none of their options. What `hemicube`, `hemicube --help` and
+    `hemicube --version` parse with, so that they import no package's heavy modules (torch, Warp): a second, not
+    seconds."""
+    import importlib
+
+    p, sub = _front()
+    for table in [importlib.import_module(m).COMMANDS for m in PACKAGES] + [COMMANDS]:
+        for name, text in table.items():
+            sub.add_parser(name, help=text)
+    return p
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line: every command with its options (each package's register)."""
+    import importlib
+
+    from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
+
+    p, sub = _front()
+    for m in PACKAGES:
+        importlib.import_module(m).register(sub)
+
+    s = sub.add_parser("validate", help=COMMANDS["validate"])
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
     s.add_argument("--sample", default="ramps", help="built-in sample (`hemicube samples list`) or a folder of "
                    "OpenSVBRDF maps (default: %(default)s)")
     s.add_argument("--device", default="cpu", help="torch/Warp device: cpu, cuda, cuda:N (default: %(default)s)")
     s.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+    s.add_argument("--junit", metavar="FILE", help="also write the checks and thresholds as JUnit XML (one test case "
+                   "each; with --suite, one test suite a sample), the format CI systems read (docs/ci.md)")
     s.add_argument("--suite", nargs="*", metavar="NAME", help="validate every sample of the material suite, or "
                    "the samples named, in parallel, and print one table (default: one sample, --sample)")
     s.add_argument("--jobs", type=int, help="suite samples run at a time (default: the number of cores)")
@@ -72,10 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "hours (the paper rig) instead of stopping with the estimate")
     s.set_defaults(func=cmd_validate)
 
-    bench = sub.add_parser("bench", help="benchmarks; print JSON").add_subparsers(dest="bench_command",
-                                                                                  required=True)
-    twin.cli.register_bench(bench)
-    reconstruction.cli.register_bench(bench)
+    bench = sub.add_parser("bench", help=COMMANDS["bench"]).add_subparsers(dest="bench_command", required=True)
+    for m in ("twin.cli", "reconstruction.cli"):
+        importlib.import_module(m).register_bench(bench)
     return p
 
 
@@ -99,7 +124,9 @@ def _os_error_line(e: OSError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)  # bad usage: argparse's message, exit 2
+    argv = sys.argv[1:] if argv is None else list(argv)
+    named = any(not a.startswith("-") for a in argv)  # a command: its options are needed, and the packages with them
+    args = (build_parser() if named else overview_parser()).parse_args(argv)  # bad usage: argparse's line, exit 2
     try:
         if getattr(args, "device", None) is not None:  # before any work: a device this machine lacks is one line
             from twin.optics.inputs import check_device

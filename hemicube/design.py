@@ -38,7 +38,7 @@ import numpy as np
 
 from twin.outputs import Kind, claim_output
 
-from reconstruction.network.train import RUN_FOLDER
+from reconstruction.network.run_folder import RUN_FOLDER
 
 HOW = {
     "heldout_eq3": "Eq. 3 loss on the test distribution's fixed texels of the network trained for the design's "
@@ -357,8 +357,15 @@ def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = Fals
     return 0
 
 
+# the sub-commands this package adds and their one-line help: what `hemicube --help` lists without importing
+# the package's heavy modules (hemicube.cli.build_parser)
+COMMANDS = {
+    "design": "capture designs: score and compare lighting patterns and layouts",
+}
+
+
 def register(sub) -> None:
-    d = sub.add_parser("design", help="capture designs: score and compare lighting patterns and layouts")
+    d = sub.add_parser("design", help=COMMANDS["design"])
     ds = d.add_subparsers(dest="design_command", required=True)
     e = ds.add_parser("evaluate", help="score designs side by side: held-out loss over training seeds, "
                       "measurement SNR and multiplexing gain, acquisition and upload time, LED duty")

@@ -150,10 +150,11 @@ def cpu_capture_estimate(rig_obj, maps, rows: int = 1) -> dict:
 
 def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, output=None,
                    resolution: int | None = None, seed: int = 1, progress: bool = True, anyway: bool = False,
-                   frames: int = DEFAULT_FRAMES) -> int:
+                   frames: int = DEFAULT_FRAMES, junit=None) -> int:
     """The main job: rig and forward-model checks, then capture -> reconstruct -> score (see the module
     docstring). Exit code 0 when every check and every threshold passes. On the CPU, a rig whose capture
-    would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`."""
+    would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`. `junit`: a file to
+    write the checks and thresholds to as JUnit XML (hemicube.junit)."""
     import twin
     from reconstruction.evaluation.metrics import format_table, to_jsonable
     from twin.capture.plan import check_frames
@@ -182,6 +183,11 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
         "checks": [{**c.__dict__, "passed": c.passed} for c in checks],
         "thresholds": rows, "metrics": metrics, "report": paths,
     }
+    if junit is not None:
+        from hemicube.junit import check_cases, threshold_cases, write_junit
+
+        write_junit(junit, [(f"hemicube validate {rig_obj.name}/{sample}",
+                             check_cases(checks) + threshold_cases(rows))])
     if as_json:  # strict JSON: paths as strings, NaN as null (reconstruction.evaluation.metrics.to_jsonable)
         print(json.dumps(to_jsonable(report), indent=2, allow_nan=False))
         return 0 if ok else 1
@@ -286,12 +292,17 @@ def suite_results(names=None, rig="mini", device="cpu", output=None, resolution:
 
 
 def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int | None = None, seed: int = 1,
-              jobs: int | None = None, as_json=False, frames: int = DEFAULT_FRAMES) -> int:
+              jobs: int | None = None, as_json=False, frames: int = DEFAULT_FRAMES, junit=None) -> int:
     """`hemicube validate --suite [NAMES]` (module docstring). Exit code 0 when every check and every
-    threshold of every sample passes."""
+    threshold of every sample passes. `junit`: a file for the JUnit XML (hemicube.junit): the checks, then one test
+    suite a sample."""
     res = suite_results(names, rig, device, output, resolution, seed, jobs, frames)
     checks, ordered, report, ok = res["checks"], res["samples"], res["report"], res["passed"]
     names = [r["sample"] for r in ordered]
+    if junit is not None:
+        from hemicube.junit import write_junit
+
+        write_junit(junit, suite_junit(res))
     if as_json:
         from reconstruction.evaluation.metrics import to_jsonable
 
@@ -308,6 +319,17 @@ def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int
     print(f"  report: {report}")
     print("result:", "all samples passed" if ok else "FAILED")
     return 0 if ok else 1
+
+
+def suite_junit(res: dict) -> list:
+    """A suite run's (suite_results) test suites for hemicube.junit: the checks, then one a sample (its thresholds, or
+    the error that stopped it)."""
+    from hemicube.junit import check_cases, threshold_cases
+
+    return [(f"hemicube validate --suite {res['rig']}: checks", check_cases(res["checks"]))] + [
+        (f"hemicube validate {res['rig']}/{r['sample']}",
+         [{"name": "run", "passed": False, "error": r["error"]}] if "error" in r else threshold_cases(r["rows"]))
+        for r in res["samples"]]
 
 
 def _without_pairs(result: dict) -> dict:

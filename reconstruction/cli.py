@@ -186,6 +186,20 @@ BENCH_PIPELINE = {
 }
 
 
+# the sub-commands this package adds and their one-line help: what `hemicube --help` lists without importing
+# the package's heavy modules (hemicube.cli.build_parser)
+COMMANDS = {
+    "reconstruct": "capture folder -> latents and OpenSVBRDF maps",
+    "compare": "score two map folders against each other under the 560 novel views and lights (the truth's "
+               "radiance box-filtered onto the second's grid)",
+    "reconstruct-many": "reconstruct every capture folder under a folder, on Ray (skips finished ones, retries "
+                        "failures, scores against ground truth where there is one)",
+    "train": "train the acquisition network (resumable); writes learned patterns; under torchrun, data-parallel"
+             " over the processes (--batch is the global batch)",
+    "network": "score a trained network, or make the shipped files from it",
+}
+
+
 def register(sub) -> None:
     """Add the reconstruction's sub-commands to the front's parser."""
     from reconstruction.stages.extraction import FOOTPRINTS
@@ -195,7 +209,7 @@ def register(sub) -> None:
     from twin.lock import BREAK_LOCK_HELP
 
     rc, tc = ReconstructConfig(), TrainConfig()
-    s = sub.add_parser("reconstruct", help="capture folder -> latents and OpenSVBRDF maps")
+    s = sub.add_parser("reconstruct", help=COMMANDS["reconstruct"])
     s.add_argument("capture", help="a capture folder (hemicube capture, or the real device's)")
     s.add_argument("-o", "--output", required=True, help="reconstruction folder, replaced whole when done; any other "
                    "existing path, or one inside the capture, is refused")
@@ -225,8 +239,7 @@ def register(sub) -> None:
     s.add_argument("--no-progress", action="store_true", help="no progress output")
     s.set_defaults(func=cmd_reconstruct)
 
-    s = sub.add_parser("compare", help="score two map folders against each other under the 560 novel views and "
-                       "lights (the truth's radiance box-filtered onto the second's grid)")
+    s = sub.add_parser("compare", help=COMMANDS["compare"])
     s.add_argument("truth", help="the true maps (a map folder: OpenSVBRDF or ours)")
     s.add_argument("recon", help="the maps to score (e.g. a reconstruction's maps/), on a square grid")
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder whose views and lights "
@@ -237,8 +250,7 @@ def register(sub) -> None:
 
     from twin.batch import add_arguments
 
-    s = sub.add_parser("reconstruct-many", help="reconstruct every capture folder under a folder, on Ray (skips "
-                       "finished ones, retries failures, scores against ground truth where there is one)")
+    s = sub.add_parser("reconstruct-many", help=COMMANDS["reconstruct-many"])
     s.add_argument("captures", help="a folder whose sub-folders are capture folders")
     s.add_argument("-o", "--output", required=True, help="folder for one reconstruction per capture and batch.json")
     s.add_argument("--resolution", type=int, help=f"texture grid texels per side (default: {rc.resolution})")
@@ -248,8 +260,7 @@ def register(sub) -> None:
     add_arguments(s)
     s.set_defaults(func=cmd_reconstruct_many)
 
-    s = sub.add_parser("train", help="train the acquisition network (resumable); writes learned patterns; under "
-                       "torchrun, data-parallel over the processes (--batch is the global batch)")
+    s = sub.add_parser("train", help=COMMANDS["train"])
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
     s.add_argument("--steps", type=int, help=f"optimiser steps in all (default: {tc.steps})")
     s.add_argument("--batch", type=int, help=f"lumitexels per step (default: {tc.batch})")
@@ -281,8 +292,7 @@ def register(sub) -> None:
     s.set_defaults(func=cmd_train)
 
 
-    net = sub.add_parser("network", help="score a trained network, or make the shipped files from it"
-                         ).add_subparsers(dest="network_command", required=True)
+    net = sub.add_parser("network", help=COMMANDS["network"]).add_subparsers(dest="network_command", required=True)
     for name, text in (("score", "held-out figures of a `hemicube train` run's network, as JSON"),
                        ("ship", "write reconstruction/pretrained/<rig>/ (model.safetensors, model.json) from a "
                                 "`hemicube train` run, float16 weight matrices, scored as shipped")):

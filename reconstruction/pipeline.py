@@ -328,7 +328,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         checkpoint = _Checkpoint(stages, "finetune_state", key)
         # the lines come first, so the held-out index is the same in both sets
         ft = finetune(model, z56, *_photos(meas, config.finetune_photos == "lines+learned"), ft_cfg,
-                      checkpoint=checkpoint)
+                      checkpoint=checkpoint, progress=progress)
         latent, ft_info = ft.latent, {"iterations": ft.iterations, "seconds": ft.seconds}
         stages.write_latent(latent, grid.shape, ft.passes)
         done("finetune", key, t, checkpoint.earlier, finetune=ft_info)
@@ -357,7 +357,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
     checkpoint = _Checkpoint(stages, "fit_state", _key(key, asdict(fit_cfg)))
     fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                   secondary=(meas.learned_photos[:, 1], meas.learned_weights), grid_shape=grid.shape,
-                  config=fit_cfg, checkpoint=checkpoint if direct else None)
+                  config=fit_cfg, checkpoint=checkpoint if direct else None, progress=progress)
     timings["fitting_s"] = time.perf_counter() - t + checkpoint.earlier
     if checkpoint.loaded is not None:
         resumed.append(f"fitting ({checkpoint.loaded})")
@@ -377,7 +377,7 @@ def _reconstruct_into(out: ReconstructionFolder, stages: ReconstructionFolder, s
         fit = fit_ggx(rig, grid.positions(rig), lumi, lines=photos, line_weights=weights,
                       secondary=(secondary, meas.learned_weights), grid_shape=grid.shape, config=fit_cfg,
                       checkpoint=checkpoint if direct else None,
-                      start=(fit.info["texel_q"], spill.reshape(-1)) if direct else None)
+                      start=(fit.info["texel_q"], spill.reshape(-1)) if direct else None, progress=progress)
         timings["refit_s"] = time.perf_counter() - t + checkpoint.earlier
         if checkpoint.loaded is not None:
             resumed.append(f"refit ({checkpoint.loaded})")

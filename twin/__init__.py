@@ -16,7 +16,7 @@ Sub-packages, one per physical thing (docs/architecture.md has the picture):
     twin.targets    calibration targets the twin photographs (ChArUco board, flat-field source, diffuse plate,
                     ColorChecker)
     twin.design     figures of merit of capture designs (noise, multiplexing gain, device costs, design files)
-    twin.view       the pyvista view of the rig, cross-image plots
+    twin.view       the pyvista view of the rig, cross-image plots, the rig as glTF
 Beside them: the twin's commands (cli.py), its self-checks (checks.py), benchmarks (bench.py), batches on Ray
 (batch.py), atomic file writes (atomic.py), the folders' locks (lock.py) and contained paths (paths.py).
 """
@@ -54,19 +54,19 @@ def _builtin(name: str) -> Rig:
     return _CACHE[name]
 
 
-def save_rig(rig: Rig, directory, overwrite: bool = False):
-    from twin.rig.format import save_rig as _save
-
-    return _save(rig, directory, overwrite=overwrite)
-
-
-def lumitexels(*args, **kwargs):
-    from twin.optics.forward import lumitexels as _f
-
-    return _f(*args, **kwargs)
+# the public functions that live in heavier modules, loaded on first use (the forward model imports Warp): the
+# functions themselves, with their signatures and docstrings (units, shapes), not wrappers
+_LAZY = {"lumitexels": "twin.optics.forward", "measurements": "twin.optics.forward", "save_rig": "twin.rig.format"}
 
 
-def measurements(*args, **kwargs):
-    from twin.optics.forward import measurements as _f
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
 
-    return _f(*args, **kwargs)
+        value = globals()[name] = getattr(importlib.import_module(_LAZY[name]), name)  # later lookups: a plain one
+        return value
+    raise AttributeError(f"module 'twin' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

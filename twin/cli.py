@@ -3,6 +3,7 @@ capture-many, controller, samples, patterns, and the twin's benchmarks (bench lu
 resume, camera-faults, metering-faults). Options and printing only: the work is in the modules each command calls."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -55,6 +56,15 @@ def cmd_rig_export(args) -> int:
     from twin.outputs import claim_output
     from twin.rig.format import RIG_FOLDER, save_rig
 
+    if args.gltf is not None:
+        from twin.view.gltf import export_gltf
+
+        if Path(args.gltf).exists() and not args.force:
+            raise ValueError(f"--gltf {args.gltf}: the file exists; --force replaces it")
+        rig = _rig_arg(args.rig)
+        out = export_gltf(rig, args.gltf)
+        print(f"wrote rig {rig.name!r} ({rig.num_leds} LEDs, {len(rig.cameras)} cameras) as glTF to {out}")
+        return 0
     replace = claim_output(args.output, RIG_FOLDER, [("the rig being exported", args.rig)], force=args.force)
     rig = _rig_arg(args.rig)
     out = save_rig(rig, args.output, overwrite=replace)
@@ -62,14 +72,16 @@ def cmd_rig_export(args) -> int:
     return 0
 
 
-def load_led_values(path: str, rig, index: int = 0) -> np.ndarray:
-    """A per-LED vector from a .npy file ((L,) or (L, 3), never unpickled) or one frame of a pattern file."""
+def load_led_values(path: str, rig, index: int = 0) -> tuple[np.ndarray, str]:
+    """A per-LED vector from a .npy file ((L,) or (L, 3), never unpickled) or one frame of a pattern file, and what it
+    is (the file, and the frame's index and name)."""
     p = Path(path)
     if p.suffix == ".npy":
         try:
             v = np.load(p, allow_pickle=False)
         except (ValueError, OSError) as e:
             raise ValueError(f"{p}: not a readable .npy array ({e})") from None
+        what = p.name
     else:
         from twin.capture.patterns import load_patterns
 
@@ -78,19 +90,20 @@ def load_led_values(path: str, rig, index: int = 0) -> np.ndarray:
         if not 0 <= index < ps.num_patterns:
             raise ValueError(f"{p}: frame {index} out of range 0..{ps.num_patterns - 1}")
         v = ps.weights[index]
+        what = f"{p.name}, frame {index}: {ps.names[index]}"
     if v.shape[0] != rig.num_leds or v.ndim not in (1, 2):
         raise ValueError(f"{p}: expected ({rig.num_leds},) or ({rig.num_leds}, 3) values, got {v.shape}")
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{p}: values contain NaN or Inf")
-    return v
+    return v, what
 
 
 def cmd_show_rig(args) -> int:
     from twin.view.rig_view import show_rig
 
     rig = _rig_arg(args.rig)
-    values = load_led_values(args.values, rig, args.index) if args.values else None
-    out = show_rig(rig, values=values, output=args.output, window_size=tuple(args.size))
+    values, what = load_led_values(args.values, rig, args.index) if args.values else (None, "")
+    out = show_rig(rig, values=values, output=args.output, window_size=tuple(args.size), title=what)
     if out is not None:
         print(f"wrote {out}")
     return 0
@@ -199,13 +212,45 @@ def _pattern_image_args(s) -> None:
     s.set_defaults(func=cmd_show_pattern)
 
 
+# the sub-commands this package adds and their one-line help: what `hemicube --help` lists without importing
+# the package's heavy modules (hemicube.cli.build_parser)
+COMMANDS = {
+    "rig": "inspect, import and export rigs",
+    "show": "pictures of the rig and of patterns",
+    "capture": "run the capture plan (193+ HDR photos) into a session folder",
+    "capture-many": "simulated database construction: one capture per sample of a SAMPLES.toml, on Ray (skips "
+                    "finished captures, retries failures)",
+    "controller": "the LED controller: its firmware emulator, and a status query",
+    "samples": "the built-in material samples",
+    "patterns": "pattern files",
+}
+
+
+class _Deprecated(argparse.Action):
+    """An option's old name, kept for one version: it still works, with one line on stderr naming the new one."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if option_string in self.const:
+            print(f"{parser.prog}: {option_string} is deprecated: {self.const[option_string]}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def add_sample_resolution(parser, default: int, what: str) -> None:
+    """--sample-resolution: the sample's maps, texels per side. Its old name --resolution is kept for one version:
+    elsewhere --resolution is the texture grid (reconstruct, validate), one name with two meanings."""
+    parser.add_argument("--sample-resolution", "--resolution", dest="resolution", type=int, default=default,
+                        action=_Deprecated, metavar="N", help=f"{what} (default: %(default)s; --resolution, its old "
+                        "name, is deprecated: elsewhere it is the texture grid)",
+                        const={"--resolution": "use --sample-resolution (the sample's maps; --resolution is the "
+                               "texture grid in reconstruct and validate)"})
+
+
 def register(sub) -> None:
     """Add the twin's sub-commands to the front's parser."""
     from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
     from twin.lock import BREAK_LOCK_HELP
 
-    rig = sub.add_parser("rig", help="inspect, import and export rigs").add_subparsers(dest="rig_command",
-                                                                                       required=True)
+    rig = sub.add_parser("rig", help=COMMANDS["rig"]).add_subparsers(dest="rig_command", required=True)
     s = rig.add_parser("info", help="LED counts per board, bounding box, cameras")
     s.add_argument("rig", help="built-in rig name (paper, mini) or rig folder")
     s.add_argument("--json", action="store_true", help="print JSON (digest, intrinsics, centres) instead of text")
@@ -216,15 +261,17 @@ def register(sub) -> None:
     s.add_argument("--force", action="store_true", help="replace an existing rig folder (never another kind of "
                    "folder, nor a file)")
     s.set_defaults(func=cmd_rig_import)
-    s = rig.add_parser("export", help="write a rig (e.g. a built-in one) as a rig folder")
+    s = rig.add_parser("export", help="write a rig (e.g. a built-in one) as a rig folder, or as a glTF scene")
     s.add_argument("rig", help="built-in rig name (paper, mini) or rig folder")
-    s.add_argument("-o", "--output", required=True, help="rig folder to write")
+    to = s.add_mutually_exclusive_group(required=True)
+    to.add_argument("-o", "--output", help="rig folder to write")
+    to.add_argument("--gltf", metavar="FILE", help="write the rig as glTF 2.0 instead (.glb, or .gltf with its data "
+                    "embedded): boards, an instanced LED node each, camera nodes; in metres, +Y up (twin.view.gltf)")
     s.add_argument("--force", action="store_true", help="replace an existing rig folder (never another kind of "
-                   "folder, nor a file)")
+                   "folder, nor a file), or an existing --gltf file")
     s.set_defaults(func=cmd_rig_export)
 
-    show = sub.add_parser("show", help="pictures of the rig and of patterns").add_subparsers(dest="show_command",
-                                                                                             required=True)
+    show = sub.add_parser("show", help=COMMANDS["show"]).add_subparsers(dest="show_command", required=True)
     s = show.add_parser("rig", help="3-D view of the rig (pyvista); PNG off-screen, a window otherwise")
     s.add_argument("--rig", default="paper", help=RIG_HELP)
     s.add_argument("--values", help="per-LED values to colour the LEDs: .npy (L,) or (L, 3), or a pattern file "
@@ -237,7 +284,7 @@ def register(sub) -> None:
     s.set_defaults(func=cmd_show_rig)
     _pattern_image_args(show.add_parser("pattern", help="a pattern set as unfolded-cube (cross) images"))
 
-    s = sub.add_parser("capture", help="run the capture plan (193+ HDR photos) into a session folder")
+    s = sub.add_parser("capture", help=COMMANDS["capture"])
     s.add_argument("--backend", default="sim", help="device backend: sim (the simulator) or hardware (the LED "
                    "controller and pypylon cameras) (default: %(default)s)")
     s.add_argument("--led", help="hardware: the LED controller's pyserial URL (/dev/ttyACM0, socket://HOST:PORT "
@@ -257,8 +304,7 @@ def register(sub) -> None:
                    "OpenSVBRDF maps (default: %(default)s)")
     s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the sensor noise and of seeded samples "
                    "(default: %(default)s)")
-    s.add_argument("--resolution", type=int, default=128, help="texels per side of a built-in sample's maps "
-                   "(default: %(default)s)")
+    add_sample_resolution(s, 128, "texels per side of a built-in sample's maps")
     s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=FRAMES_HELP)
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default: %(default)s)")
     s.add_argument("--patterns", help="pattern file with the learned frames, K (+, -) pairs (a `hemicube train` "
@@ -271,16 +317,15 @@ def register(sub) -> None:
 
     from twin.batch import add_arguments
 
-    s = sub.add_parser("capture-many", help="simulated database construction: one capture per sample of a "
-                       "SAMPLES.toml, on Ray (skips finished captures, retries failures)")
+    s = sub.add_parser("capture-many", help=COMMANDS["capture-many"])
     s.add_argument("samples", help="SAMPLES.toml: defaults and [[sample]] entries (twin/capture/many.py)")
     s.add_argument("-o", "--output", required=True, help="folder for one capture folder per sample and batch.json")
     s.add_argument("--device", default="cpu", help="cpu or cuda: with cuda, one GPU per task (default: %(default)s)")
     add_arguments(s)
     s.set_defaults(func=cmd_capture_many)
 
-    ctl = sub.add_parser("controller", help="the LED controller: its firmware emulator, and a status query"
-                         ).add_subparsers(dest="controller_command", required=True)
+    ctl = sub.add_parser("controller", help=COMMANDS["controller"])
+    ctl = ctl.add_subparsers(dest="controller_command", required=True)
     from twin.capture.backends import led_emulator
 
     s = ctl.add_parser("serve", help="run the controller's firmware emulator (docs/led-protocol.md) until "
@@ -294,13 +339,12 @@ def register(sub) -> None:
                    "sockets) (default: %(default)s)")
     s.set_defaults(func=cmd_controller_info)
 
-    s = sub.add_parser("samples", help="the built-in material samples").add_subparsers(dest="samples_command",
-                                                                                       required=True)
+    s = sub.add_parser("samples", help=COMMANDS["samples"]).add_subparsers(dest="samples_command", required=True)
     s = s.add_parser("list", help="built-in samples with their parameter ranges")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
     s.set_defaults(func=cmd_samples_list)
 
-    pats = sub.add_parser("patterns", help="pattern files").add_subparsers(dest="patterns_command", required=True)
+    pats = sub.add_parser("patterns", help=COMMANDS["patterns"]).add_subparsers(dest="patterns_command", required=True)
     _pattern_image_args(pats.add_parser("show", help="a pattern set as unfolded-cube (cross) images"))
 
 
@@ -321,8 +365,7 @@ def register_bench(bench) -> None:
     s.add_argument("--rig", default="paper", help=RIG_HELP)
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda (default: %(default)s)")
     s.add_argument("--sample", default="ramps", help="built-in sample (default: %(default)s)")
-    s.add_argument("--resolution", type=int, default=1024, help="texels per side of the sample's maps "
-                   "(default: %(default)s)")
+    add_sample_resolution(s, 1024, "texels per side of the sample's maps")
     s.add_argument("--seed", type=int, default=0, help="the capture's seed (default: %(default)s)")
     s.add_argument("--scale", type=float, default=1.0, help="resize the cameras by this factor, e.g. 0.5 for a "
                    "quick run (default: %(default)s)")

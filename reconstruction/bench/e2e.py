@@ -1,10 +1,10 @@
 """`hemicube bench e2e`: a capture and its reconstruction as users run them, end to end, no extrapolation.
 
 The real commands, each its own process, one after the other (as in docs/performance.md's end-to-end figures):
-  capture       `hemicube capture --rig R --sample S --seed N [--resolution N] [--frames F] --device D -o W/capture`
+  capture       `hemicube capture --rig R --sample S --seed N [--sample-resolution N] [--frames F] --device D -o W/capture`
   reconstruct   `hemicube reconstruct W/capture [--resolution N] [--network NET] --device D -o W/reconstruction`
-with the commands' own defaults for everything not given (`--resolution` sets both the sample's maps and the
-texture grid). Per stage: the wall time of the process (imports and Warp's kernel loads included), its exit
+with the commands' own defaults for everything not given (the bench's `--resolution` sets both the sample's maps,
+capture's `--sample-resolution`, and the texture grid, reconstruct's `--resolution`). Per stage: the wall time of the process (imports and Warp's kernel loads included), its exit
 code, the bytes it wrote, the host's peak resident memory of the process, and, on CUDA, the peak of the device's
 used memory polled at device level while it ran (twin.bench.PeakDeviceMemory: every process's Warp and torch
 allocations together). The reconstruction's own stage times come from its summary
@@ -44,10 +44,11 @@ def bench_e2e(rig_name="paper", device="cpu", sample="ramps", resolution=None, s
     if work.exists() and not work.is_dir():
         raise ValueError(f"{work}: the work folder is a file; choose a folder (or none, for a temporary one)")
     work.mkdir(parents=True, exist_ok=True)
-    common = [] if resolution is None else ["--resolution", str(resolution)]
+    sized = [] if resolution is None else ["--sample-resolution", str(resolution)]  # the sample's maps
+    grid = [] if resolution is None else ["--resolution", str(resolution)]  # the texture grid
     capture_args = ["capture", "--rig", rig_name, "--sample", sample, "--seed", str(seed), "--device", device,
-                    "--no-progress", *common, *([] if frames is None else ["--frames", str(frames)])]
-    recon_args = ["reconstruct", str(work / "capture"), "--device", device, "--no-progress", *common,
+                    "--no-progress", *sized, *([] if frames is None else ["--frames", str(frames)])]
+    recon_args = ["reconstruct", str(work / "capture"), "--device", device, "--no-progress", *grid,
                   *([] if network is None else ["--network", network])]
     stages = {"capture": _run_stage([*capture_args, "-o", str(work / "capture")], work, "capture", device)}
     if stages["capture"]["exit_code"] == 0:

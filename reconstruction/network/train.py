@@ -61,8 +61,9 @@ import numpy as np
 import torch
 
 from twin.atomic import atomic_path, file_sha256, write_bytes_atomic
-from twin.outputs import Kind, claim_output
+from twin.outputs import claim_output
 
+from reconstruction.network.run_folder import CHECKPOINT_JSON, RUN_FOLDER
 from reconstruction.network.data import LumitexelStream, SamplingConfig, heldout_set, led_directions, stream_seed
 from reconstruction.network.distributed import Dist, any_rank, all_sum, barrier, gather_objects, globalise_batchnorm, join
 from reconstruction.network.architecture import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
@@ -70,9 +71,6 @@ from reconstruction.network.architecture import AcquisitionNet, NetworkConfig, a
 __all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_patterns", "load_checkpoint",
            "CHECKPOINT_SHARD_BYTES", "CHECKPOINT_JSON", "heldout_losses", "blind_loss"]
 
-CHECKPOINT_JSON = "checkpoint.json"
-# a run folder, resumed (twin.outputs): its checkpoint, or the held-out log a run writes before its first one
-RUN_FOLDER = Kind("a training run folder", (CHECKPOINT_JSON, "metrics.jsonl"))
 _SHARD_PREFIX, _LEGACY_TENSORS = "checkpoint-", "checkpoint.safetensors"  # a shard's name; version 1's one file
 # tensor bytes per shard file: 15 MiB, so that a file with its safetensors header stays under 16 MiB (module docstring)
 CHECKPOINT_SHARD_BYTES = 15 * 2 ** 20
@@ -442,7 +440,7 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
     time_limit: seconds from this call's start after which the run checkpoints and stops (see "Chunks")."""
     t_call = time.perf_counter()  # the limit counts setup too (rig, held-out set, a 2 GB checkpoint load)
     import twin
-    from tqdm import tqdm
+    from twin.progress import progress_bar
     from twin.capture.patterns import save_patterns
 
     if not isinstance(config, TrainConfig):
@@ -536,8 +534,8 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
 
             if start == 0:
                 log(0)
-            bar = tqdm(range(start, config.steps), initial=start, total=config.steps,
-                       disable=not (progress and ctx.is_main), desc="train", unit="step", file=sys.stderr)
+            bar = progress_bar(range(start, config.steps), initial=start, total=config.steps,
+                               enabled=progress and ctx.is_main, desc="train", unit="step", file=sys.stderr)
             for i in bar:
                 if is_pair_step(i, config.pair_fraction):
                     b = stream.pair_batch(i)

@@ -424,7 +424,7 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
             img = demosaiced(mosaic(img, bayer), bayer, method=demosaic).astype(np.float32)
         return corrected(img, cams[c], calibrations[c])
 
-    from tqdm import tqdm
+    from twin.progress import progress_bar
 
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
     ix = plan_indices(session)
@@ -443,8 +443,8 @@ def extract(session: CaptureSession, rig, grid: TextureGrid, alignment, *, footp
     # release the GIL): a paper-rig capture is 196 photos of 74 MB, each a long read on one core
     jobs = [(k, c) for c in (0, 1) for k in ix.learned] + [(k, 0) for k in ix.lines] + [(ix.bottom, 0), (ix.empty_bottom, 0)]
     with ThreadPoolExecutor(max_workers=min(READERS, os.cpu_count() or 1)) as pool:
-        values = dict(zip(jobs, tqdm(pool.map(sampled, jobs), total=len(jobs), desc="extract",
-                                     disable=not progress)))
+        values = dict(zip(jobs, progress_bar(pool.map(sampled, jobs), total=len(jobs), desc="extract",
+                                             enabled=progress)))
     n = len(pos)
     learned_photos = np.empty((n, 2, len(ix.learned), 3), np.float32)
     for c in (0, 1):

@@ -508,7 +508,7 @@ def _resumed(checkpoint, n: int, ad: int, sd: int, runs: int) -> dict | None:
 
 
 def finetune(model, latent, lines, line_weights, config: FinetuneConfig = FinetuneConfig(),
-             checkpoint=None) -> FinetuneResult:
+             checkpoint=None, progress: bool = False) -> FinetuneResult:
     """The three fine-tuning passes (module docstring) of N texels.
 
     model: an AcquisitionNet on config.device (its decoder is used, in eval mode, parameters frozen);
@@ -517,8 +517,8 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
     in [0, 1]; checkpoint: None, or an object with load() -> dict | None and save(dict) where the passes keep their
     state as they go (the latents so far, at most every CHECKPOINT_SECONDS and at the end of each pass): given the
     state a killed run saved, the passes go on from the last batch it finished and end with the same latents as a
-    run that was never stopped (each batch's optimisation depends on its own texels only). Returns a
-    FinetuneResult (numpy float32 latents)."""
+    run that was never stopped (each batch's optimisation depends on its own texels only); progress: a bar over the
+    passes' batches on a terminal (twin.progress). Returns a FinetuneResult (numpy float32 latents)."""
     if not isinstance(config, FinetuneConfig):
         raise ValueError(f"config must be a FinetuneConfig, got {type(config).__name__}")
     ad, sd, num_leds = _check_model(model)
@@ -567,6 +567,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
     problems = [_Problem(model, y[sl].to(dev), w_dev, ad, eps) for sl in slices]
 
     from twin.optics.torch_ops import tf32_products  # Warp's kernels load with it: not at this module's import
+    from twin.progress import progress_bar
 
     def track(name, x0, energy, i):
         """One Adam run of pass `name` (index i) from x0; records the objective, history and iterations."""
@@ -579,10 +580,13 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
         return x.cpu()
 
     last_save = time.perf_counter()
+    bar = progress_bar(total=3 * len(slices), initial=int(state["done"]), desc="fine-tuning", unit="batch",
+                       enabled=progress)
 
     def finished(unit: int, last: bool) -> None:
         """Batch unit (pass-major) is done: save the state when it is time, and at the end of each pass."""
         nonlocal last_save
+        bar.update(1)
         if checkpoint is not None and (last or time.perf_counter() - last_save >= CHECKPOINT_SECONDS):
             state.update(phase=PASSES[1 + (unit + 1) // len(slices)] if unit + 1 < 3 * len(slices) else "done",
                          done=unit + 1, grey1=grey1.numpy(), rgb2=rgb2.numpy(), rgb3=rgb3.numpy())
@@ -614,6 +618,7 @@ def finetune(model, latent, lines, line_weights, config: FinetuneConfig = Finetu
 
         for p, step in enumerate((pass1, pass2, pass3), start=1):
             run(p, step)
+    bar.close()
     passes["pass1"] = torch.cat([grey1[:, :ad]] * 3 + [grey1[:, ad:]], dim=1)
     passes["pass2"], passes["pass3"] = rgb2, rgb3
 

@@ -145,7 +145,7 @@ def test_fit_benches_refuse_bad_counts_before_any_work(bench, argv, message, cap
     assert message in capsys.readouterr().err
 
 
-CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--resolution", "32", "--scale", "0.5"]
+CAPTURE = ["bench", "capture", "--rig", "mini", "--device", "cpu", "--sample-resolution", "32", "--scale", "0.5"]
 
 
 @pytest.mark.slow

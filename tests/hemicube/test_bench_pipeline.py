@@ -80,7 +80,7 @@ def test_bench_e2e_tiny(e2e):
     for s in res["stages"].values():
         assert s["exit_code"] == 0 and s["seconds"] > 0 and s["bytes_written"] > 0 and s["host_peak_rss_mib"] > 0
     assert s["peak_device_memory_mib"] is None  # the CPU: no device memory to poll
-    assert res["commands"]["capture"][:2] == ["hemicube", "capture"] and "--resolution" in res["commands"]["capture"]
+    assert res["commands"]["capture"][:2] == ["hemicube", "capture"] and "--sample-resolution" in res["commands"]["capture"]
     assert {"alignment_s", "extraction_s", "decode_s", "finetune_s", "fitting_s"} <= set(res["reconstruct_stages_s"])
     assert res["texels"] == 16 * 16
     assert [c["check"] for c in res["checks"]] == ["capture_exit_code", "reconstruct_exit_code",

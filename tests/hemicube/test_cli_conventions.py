@@ -3,6 +3,9 @@ a device this machine lacks and a suite sample that does not exist refused in on
 of different samples in different default folders."""
 from __future__ import annotations
 
+import io
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -63,3 +66,138 @@ def test_one_seed_default_for_every_capture():
     parser = hemicube.cli.build_parser()
     seeds = {cmd: parser.parse_args([cmd] + extra).seed for cmd, extra in (("capture", ["-o", "x"]), ("validate", []))}
     assert seeds == {"capture": DEFAULT_SEED, "validate": DEFAULT_SEED} and DEFAULTS["seed"] == DEFAULT_SEED == 1
+
+
+def test_help_imports_neither_torch_nor_warp():
+    """`hemicube --help` parses with the front alone (hemicube.cli.overview_parser): a fresh process that prints it has
+    imported neither torch nor Warp, and it lists every command the whole parser has, with the same help."""
+    code = ("import sys, hemicube.cli as c\ntry:\n    c.main(['--help'])\nexcept SystemExit as e:\n    assert e.code == 0\n"
+            "print(sorted(m for m in ('torch', 'warp') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip().splitlines()[-1] == "[]", r.stdout[-2000:] + r.stderr[-2000:]
+
+    def commands(parser):
+        sub = next(a for a in parser._actions if a.dest == "command")
+        return [(c.dest, c.help) for c in sub._choices_actions]
+
+    assert commands(hemicube.cli.overview_parser()) == commands(hemicube.cli.build_parser())
+
+
+def test_junit_reads_back_with_a_junit_reader(tmp_path):
+    """hemicube.junit's document, read by junitparser as a CI system reads it: a case per check and threshold, a
+    missed one a failure with its message, a sample that did not finish an error."""
+    from junitparser import Error, Failure, JUnitXml
+
+    from hemicube.junit import write_junit
+
+    cases = [{"name": "maps.alpha_x_pct.median", "passed": True, "message": "4.1 <= 10"},
+             {"name": "novel.ssim.worst", "passed": False, "message": "0.80 >= 0.9 (goal)"}]
+    path = write_junit(tmp_path / "r.xml", [("hemicube validate mini/metal", cases),
+                                            ("hemicube validate mini/x", [{"name": "run", "passed": False,
+                                                                           "error": "ValueError: no"}])])
+    suites = list(JUnitXml.fromfile(str(path)))
+    assert [(s.name, s.tests, s.failures, s.errors) for s in suites] == [
+        ("hemicube validate mini/metal", 2, 1, 0), ("hemicube validate mini/x", 1, 0, 1)]
+    results = {c.name: c.result for s in suites for c in s}
+    assert results["maps.alpha_x_pct.median"] == []
+    assert isinstance(results["novel.ssim.worst"][0], Failure) and "0.80" in results["novel.ssim.worst"][0].message
+    assert isinstance(results["run"][0], Error)
+
+
+@pytest.mark.parametrize("where", ["missing/r.xml", "."])
+def test_a_junit_file_that_cannot_be_written_is_refused_before_any_work(where, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rc = hemicube.cli.main(["validate", "--junit", str(tmp_path / where), "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == EXIT_USAGE and len(err) == 1 and err[0].startswith("hemicube: error: --junit"), err
+    assert list(tmp_path.iterdir()) == []
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_is_drawn_on_a_terminal_and_quiet_in_a_log():
+    """twin.progress.progress_bar: a log (a stream that is no terminal) gets nothing, where a bar updated per photo
+    would add a line each; a terminal gets the bar; --no-progress (enabled=False) silences both."""
+    from twin.progress import progress_bar
+
+    def drawn(stream, enabled=True) -> str:
+        for _ in progress_bar(range(5), enabled=enabled, file=stream, desc="capture", mininterval=0):
+            pass
+        return stream.getvalue()
+
+    assert drawn(io.StringIO()) == ""
+    assert "capture" in drawn(_Terminal()) and "5/5" in drawn(_Terminal())
+    assert drawn(_Terminal(), enabled=False) == ""
+
+
+def test_the_readme_tours_show_pattern_reads_its_capture(validate_dir, tmp_path):
+    """README's tour shows a pattern file that exists on a fresh clone: the one its own capture wrote (a capture
+    folder holds its pattern set), after that capture's line. Here the session's capture stands for the tour's."""
+    import shlex
+
+    lines = [line.split("#")[0].strip() for line in README.read_text().splitlines()]
+    show = next(k for k, line in enumerate(lines) if line.startswith(".venv/bin/hemicube show pattern"))
+    capture = next(k for k, line in enumerate(lines) if line.startswith(".venv/bin/hemicube capture "))
+    argv = shlex.split(lines[show])[1:]
+    tour_capture = shlex.split(lines[capture])
+    session = tour_capture[tour_capture.index("-o") + 1]
+    assert capture < show and argv[2] == f"{session}/patterns.npz", (lines[capture], lines[show])
+    argv[2] = str(validate_dir / "capture" / "patterns.npz")
+    argv[argv.index("-o") + 1] = str(tmp_path / "cross.png")
+    assert hemicube.cli.main(argv) == 0
+    assert list(tmp_path.glob("cross*.png")), list(tmp_path.iterdir())
+
+
+def test_the_long_stages_show_progress_on_a_terminal_and_none_in_a_log(validate_dir, tmp_path):
+    """`hemicube reconstruct` in a terminal (a pseudo-terminal of 120 columns here) draws a bar for the photos'
+    extraction, fine-tuning and fitting (a log gets none: test_progress_is_drawn_on_a_terminal_and_quiet_in_a_log)."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
+    import threading
+
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))
+    seen = bytearray()
+
+    def drain():  # read as the command writes: a full terminal buffer would stop it
+        while True:
+            try:
+                chunk = os.read(leader, 1 << 16)
+            except OSError:  # the terminal closed
+                return
+            if not chunk:
+                return
+            seen.extend(chunk)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    try:
+        argv = ["reconstruct", str(validate_dir / "capture"), "-o", str(tmp_path / "out"), "--resolution", "12"]
+        assert subprocess.run([sys.executable, "-m", "hemicube.cli", *argv], stdout=subprocess.DEVNULL,
+                              stderr=follower, timeout=900).returncode == 0
+    finally:
+        os.close(follower)
+        reader.join(timeout=10)
+        os.close(leader)
+    for bar in (b"extract:", b"fine-tuning:", b"fitting:"):
+        assert bar in seen, bytes(seen[-2000:])
+
+
+def test_one_meaning_per_option_name_with_the_old_name_kept_a_version(capsys):
+    """--resolution is the texture grid (reconstruct, validate); the sample's maps are --sample-resolution (capture,
+    bench capture). Capture's old --resolution still works for one version, with one line saying so."""
+    parser = hemicube.cli.build_parser()
+    assert parser.parse_args(["capture", "-o", "x", "--sample-resolution", "32"]).resolution == 32
+    assert capsys.readouterr().err == ""
+    assert parser.parse_args(["capture", "-o", "x", "--resolution", "32"]).resolution == 32
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--resolution is deprecated: use --sample-resolution" in err[0], err
+    assert parser.parse_args(["bench", "capture", "--sample-resolution", "64"]).resolution == 64
+    assert parser.parse_args(["reconstruct", "c", "-o", "x", "--resolution", "12"]).resolution == 12
+    assert capsys.readouterr().err == ""

@@ -268,7 +268,7 @@ def test_any_pattern_count_through_capture_and_reconstruction(tmp_path, capsys):
     run = tmp_path / "opt" / "run"
     assert "hemicube capture --patterns" in capsys.readouterr().out
     cap, rec = tmp_path / "cap", tmp_path / "rec"
-    assert hemicube.cli.main(["capture", "--rig", "mini", "--sample", "ramps", "--resolution", "32", "--patterns",
+    assert hemicube.cli.main(["capture", "--rig", "mini", "--sample", "ramps", "--sample-resolution", "32", "--patterns",
                               str(run / "patterns.npz"), "-o", str(cap), "--no-progress"]) == 0
     ix = indices_of(CaptureSession.open(cap))
     assert ix == PlanIndices(8) and (ix.lines.start, ix.uniform) == (8, 73)

@@ -1,13 +1,14 @@
 """The main job, `hemicube validate`: simulate, reconstruct, score, with the mini rig's thresholds (CI).
 
 The thresholds themselves live in reconstruction.evaluation.validation.THRESHOLDS and docs/accuracy.md; this test runs
-the README's command (on the session's shared capture, resumed) and checks that it passes them, prints the
+docs/ci.md's example job's command, the README's plus --junit (on the session's shared capture, resumed) and checks that it passes them, prints the
 table, and writes the report. A second run on a map folder (`--sample DIR`) checks that any OpenSVBRDF map
 folder goes through the same path. The material suite is tests/test_validate_suite.py.
 """
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import hemicube.cli
 from reconstruction.stages.fitting import FitConfig
@@ -16,9 +17,38 @@ from twin.capture.plan import DEFAULT_FRAMES
 from twin.materials.samples import load_sample, write_maps
 
 
-def test_main_job_passes_its_thresholds(validate_dir, capsys):
-    rc = hemicube.cli.main(["validate", "-o", str(validate_dir), "--no-progress"])
+CI_DOC = Path(__file__).resolve().parents[2] / "docs" / "ci.md"
+
+
+def ci_example_command() -> list[str]:
+    """docs/ci.md's example job: its `hemicube validate` step as arguments (after `hemicube`); the job sets up with
+    the README's `make setup`."""
+    import shlex
+
+    import yaml
+
+    block = CI_DOC.read_text().split("```yaml\n", 1)[1].split("```", 1)[0]
+    runs = [step["run"] for step in yaml.safe_load(block)["jobs"]["validate"]["steps"] if "run" in step]
+    (command,) = [r for r in runs if "hemicube validate" in r]
+    assert runs[0] == "make setup", runs
+    argv = shlex.split(command)
+    assert argv[0] == ".venv/bin/hemicube", argv
+    return argv[1:]
+
+
+def test_main_job_passes_its_thresholds(validate_dir, capsys, tmp_path):
+    """The main job as docs/ci.md's example job runs it (its folders moved into the test's): every threshold met, the
+    report complete, and its JUnit file read back as a CI system reads it."""
+    from junitparser import JUnitXml
+
+    argv = ci_example_command()
+    moved = {"-o": str(validate_dir), "--junit": str(tmp_path / "junit.xml")}
+    argv = [moved.get(argv[k - 1], a) if k else a for k, a in enumerate(argv)]
+    assert set(moved.values()) <= set(argv), argv
+    rc = hemicube.cli.main(argv)
     out = capsys.readouterr().out
+    (suite,) = JUnitXml.fromfile(moved["--junit"])
+    assert suite.failures == 0 and suite.errors == 0 and suite.tests > len(thresholds_for("mini"))
     assert "PASS" in out and "FAIL" not in out, out
     assert rc == 0, out
     doc = json.loads((validate_dir / "report" / "metrics.json").read_text())
@@ -54,13 +84,20 @@ def test_validate_any_map_folder(tmp_path, capsys):
     maps = write_maps(load_sample("brushed_metal", resolution=64), tmp_path / "maps")
     out = tmp_path / "v"
     rc = hemicube.cli.main(["validate", "--sample", str(maps), "--resolution", "16", "-o", str(out), "--no-progress",
-                            "--json"])
+                            "--json", "--junit", str(tmp_path / "junit.xml")])
     doc = json.loads(capsys.readouterr().out, parse_constant=_not_json)  # strict JSON: no NaN, no Infinity
     assert [r["metric"] for r in doc["thresholds"]] == [g.metric for g in GOALS["mini"]]
     assert all(isinstance(v, str) for v in doc["report"]["images"].values())  # paths as strings, not reprs
     assert rc == (0 if doc["passed"] else 1)
     assert doc["metrics"]["maps"]["normal_deg"]["median"] >= 0
     assert (out / "report" / "report.md").is_file()
+    # --junit: a test case per check and threshold, read as a CI system reads it (failures where the JSON misses)
+    from junitparser import JUnitXml
+
+    (suite,) = JUnitXml.fromfile(str(tmp_path / "junit.xml"))
+    cases = {c.name: bool(c.result) for c in suite}
+    assert len(cases) == len(doc["checks"]) + len(doc["thresholds"])
+    assert {r["metric"]: not r["passed"] for r in doc["thresholds"]}.items() <= cases.items()
 
 
 def test_paper_rig_goals_are_the_suites_and_the_latent_render():

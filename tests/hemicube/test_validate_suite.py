@@ -60,8 +60,11 @@ def test_suite_sample_meets_the_goals(suite_run, name):
     assert r["passed"] and not missed, missed
 
 
-def test_suite_report_and_table(suite_run):
-    from hemicube.validate import suite_table
+def test_suite_report_and_table(suite_run, tmp_path):
+    from junitparser import JUnitXml
+
+    from hemicube.junit import write_junit
+    from hemicube.validate import suite_junit, suite_table
 
     assert all(c.passed for c in suite_run["checks"])
     table = suite_table(suite_run["samples"])
@@ -74,3 +77,7 @@ def test_suite_report_and_table(suite_run):
     assert report.read_text().count("novel views: SSIM mean") == len(names)
     assert all("pairs" not in r["metrics"]["novel"] for r in json.loads((report.parent / "metrics.json").read_text())
                ["samples"])
+    # --junit: the checks, then a test suite a sample with a test case a threshold, as a CI system reads them
+    suites = list(JUnitXml.fromfile(str(write_junit(tmp_path / "suite.xml", suite_junit(suite_run)))))
+    assert [s.tests for s in suites] == [len(suite_run["checks"])] + [len(r["rows"]) for r in suite_run["samples"]]
+    assert [s.failures for s in suites[1:]] == [sum(not row["passed"] for row in r["rows"]) for r in suite_run["samples"]]

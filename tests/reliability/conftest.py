@@ -14,7 +14,7 @@ import pytest
 import hemicube.cli
 
 # `hemicube capture` as the session's capture was taken: run again on a copy, it resumes that copy
-CAPTURE_ARGS = ("capture", "--rig", "mini", "--sample", "ramps", "--seed", "1", "--frames", "1", "--resolution",
+CAPTURE_ARGS = ("capture", "--rig", "mini", "--sample", "ramps", "--seed", "1", "--frames", "1", "--sample-resolution",
                 "16", "--no-progress")
 
 

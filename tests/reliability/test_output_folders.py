@@ -146,7 +146,7 @@ def test_what_is_not_the_commands_is_refused(command, case, inputs, tmp_path, cl
 # from the capture's copy `c` (its rig and its ground-truth maps are a rig folder and a sample) and `i`, inputs
 INPUTS = {
     "capture: inside --rig": lambda c, i: (
-        ["capture", "--rig", c / "rig", "--frames", "1", "--resolution", "16"], c / "rig" / "x", c / "rig",
+        ["capture", "--rig", c / "rig", "--frames", "1", "--sample-resolution", "16"], c / "rig" / "x", c / "rig",
         "would lie inside the rig folder"),
     "capture: holding --sample": lambda c, i: (
         ["capture", "--rig", "mini", "--sample", c / "ground_truth" / "maps"], c / "ground_truth",

@@ -309,17 +309,17 @@ def test_yaml_matrix_with_wrong_count_is_refused(reference_dir, tmp_path):
     text = (reference_dir / "extrinsic.yml").read_text()
     p = tmp_path / "short.yml"
     p.write_text(text.replace("-0.99991702 ]", "]"))  # rmat loses its last value
-    with pytest.raises(OpenCVYamlError, match=r"matrix 'rmat' has 8 values, expected 3x3"):
+    with pytest.raises(OpenCVYamlError, match=r"short.yml: not a valid OpenCV YAML file \(.*Parsing error"):
         read_opencv_yaml(p)
 
 
 def test_yaml_other_errors(tmp_path):
     p = tmp_path / "a.yml"
     p.write_text("%YAML:1.0\n---\nm: !!opencv-matrix\n   rows: 1\n   cols: 2\n   dt: d\n   data: [ 1., x ]\n")
-    with pytest.raises(OpenCVYamlError, match="non-numeric"):
+    with pytest.raises(OpenCVYamlError, match="not a valid OpenCV YAML file .*plain sequences of numbers"):
         read_opencv_yaml(p)
     p.write_text("%YAML:1.0\n---\nm: !!opencv-matrix\n   rows: 1\n   cols: 2\n   data: [ 1., 2. ]\n")
-    with pytest.raises(OpenCVYamlError, match="lacks 'dt'"):
+    with pytest.raises(OpenCVYamlError, match=r"not a valid OpenCV YAML file .*dt"):
         read_opencv_yaml(p)
     with pytest.raises(OpenCVYamlError, match="cannot read"):
         read_opencv_yaml(tmp_path / "missing.yml")

@@ -8,8 +8,8 @@ from matplotlib import colormaps
 from PIL import Image
 
 from twin.rig.cross import CROSS_SHAPE
-from twin.view.cross_plot import (BACKGROUND, GRID_SCALE, MARGIN_PX, SCALE, TITLE_PX, cross_rgb, save_cross_image,
-                             save_pattern_image)
+from twin.view.cross_plot import (BACKGROUND, BAR_PX, GRID_SCALE, MARGIN_PX, SCALE, TITLE_PX, cross_rgb, face_labels,
+                                  save_cross_image, save_pattern_image)
 from twin.capture.patterns import PatternSet, save_patterns
 
 
@@ -76,10 +76,12 @@ def test_save_pattern_image_sizes(tmp_path, mini):
     one = save_pattern_image(ps, mini, tmp_path / "one.png", index=1)
     assert one == tmp_path / "one.png"
     img = np.asarray(Image.open(one).convert("RGB"))
-    assert img.shape == (H * SCALE + TITLE_PX + 2 * MARGIN_PX, W * SCALE + 2 * MARGIN_PX, 3) == (552, 784, 3)
-    # nearest-neighbour upscaling: the block of a full-on top LED is uniformly that pattern's colour
-    top = mini.leds.board == 1
-    l = np.flatnonzero(top)[np.argmax(ps.levels[1, top, 0])]
+    assert img.shape == (H * SCALE + TITLE_PX + 2 * MARGIN_PX, W * SCALE + 2 * MARGIN_PX + BAR_PX, 3) == (552, 874, 3)
+    # nearest-neighbour upscaling: the block of a top LED is uniformly that pattern's colour (the one farthest from
+    # the face's label, which is drawn over the LEDs at the face's centre)
+    top = np.flatnonzero(mini.leds.board == 1)
+    lx, ly = next((x, y) for x, y, face in face_labels(mini) if face == mini.boards[1].face)
+    l = top[np.argmax(np.hypot(*(mini.leds.cross_pixel[top] - [lx, ly]).T))]
     c, r = mini.leds.cross_pixel[l]
     y0, x0 = MARGIN_PX + TITLE_PX + r * SCALE, MARGIN_PX + c * SCALE
     block = img[y0:y0 + SCALE, x0:x0 + SCALE].reshape(-1, 3)
@@ -88,7 +90,7 @@ def test_save_pattern_image_sizes(tmp_path, mini):
     grid = save_pattern_image(ps, mini, tmp_path / "grid.png")  # 3 frames: 2 columns x 2 rows
     img = np.asarray(Image.open(grid).convert("RGB"))
     assert img.shape == (2 * (H * GRID_SCALE + TITLE_PX) + 3 * MARGIN_PX,
-                         2 * W * GRID_SCALE + 3 * MARGIN_PX, 3)
+                         2 * W * GRID_SCALE + 3 * MARGIN_PX + BAR_PX, 3)
     assert not list(tmp_path.glob(".*.png"))  # atomic writes leave no temp files
 
 
@@ -107,7 +109,7 @@ def test_cli_show_pattern(tmp_path, mini, capsys):
     save_patterns(_gradient_patterns(mini, 2), path)
     out = tmp_path / "p.png"
     assert main(["show", "pattern", str(path), "-o", str(out), "--index", "0"]) == 0
-    assert Image.open(out).size == (784, 552)
+    assert Image.open(out).size == (874, 552)
     assert main(["show", "pattern", str(path), "-o", str(out), "--index", "5"]) == 2
     assert "out of range" in capsys.readouterr().err
 
@@ -122,3 +124,17 @@ def test_save_cross_image_lumitexel(tmp_path, mini):
     c, r = mini.leds.cross_pixel[-1]
     px = img[MARGIN_PX + TITLE_PX + r * SCALE + 1, MARGIN_PX + c * SCALE + 1]
     assert np.allclose(px, np.rint(np.array(colormaps["inferno"](1.0)[:3]) * 255), atol=1)
+
+
+def test_pattern_pictures_name_the_faces_and_show_their_scale(mini):
+    """A pattern's cross picture names every face of the cube on it and has a scale of the drive level."""
+    from twin.view.cross_plot import PATTERN_SCALE, tiles_figure
+
+    labels = face_labels(mini)
+    assert sorted(f for _, _, f in labels) == sorted({b.face for b in mini.boards})
+    ps = _gradient_patterns(mini, 1)
+    fig = tiles_figure([(cross_rgb(mini, ps.weights[0]), "0: p")], SCALE, PATTERN_SCALE, labels)
+    texts = {t.get_text() for ax in fig.axes for t in ax.texts}
+    assert {f for _, _, f in labels} <= texts
+    bar = fig.axes[-1]
+    assert bar.get_ylabel() == PATTERN_SCALE[2] and bar.get_ylim() == (0.0, 255.0)

@@ -174,3 +174,25 @@ def test_default_view_looks_in_from_minus_y_above(mini):
     assert eye[1] < mini.led_positions[:, 1].min()  # outside the -y wall
     assert eye[2] > focus[2] > mini.sample.origin[2]  # from above, looking down at the sample
     assert up == (0.0, 0.0, 1.0)
+
+
+def test_a_patterns_view_names_it_and_has_a_drive_scale_and_face_labels(mini, tmp_path):
+    """`show rig --values PATTERNS --index K`: the picture names the frame, has a colour bar of the drive level and
+    names the cube's faces."""
+    from twin.capture.patterns import save_patterns
+    from twin.capture.plan import build_patterns
+    from twin.cli import load_led_values
+    from twin.view.rig_view import DRIVE_BAR, build_plotter, face_centres
+
+    patterns = build_patterns(mini)
+    save_patterns(patterns, tmp_path / "p.npz")
+    values, what = load_led_values(str(tmp_path / "p.npz"), mini, 70)
+    assert what == f"p.npz, frame 70: {patterns.names[70]}"
+    pl = build_plotter(mini, values, window_size=(320, 240), title=what)
+    try:
+        assert DRIVE_BAR in pl.scalar_bars.keys() and "faces-labels" in pl.actors
+        title = pl.actors[next(k for k in pl.actors if k.startswith("CornerAnnotation"))]
+        assert what in "".join(title.GetText(i) or "" for i in range(8))
+    finally:
+        pl.close()
+    assert set(face_centres(mini)) == {b.face for b in mini.boards}

@@ -223,6 +223,6 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
 
 
 def _progress(total, done, enabled):
-    from tqdm import tqdm
+    from twin.progress import progress_bar
 
-    return tqdm(total=total, initial=done, desc="capture", unit="photo", disable=not enabled)
+    return progress_bar(total=total, initial=done, desc="capture", unit="photo", enabled=enabled)

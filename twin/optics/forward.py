@@ -34,7 +34,10 @@ def lumitexels(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y, *
                device="cpu", camera=None, transparency=None, g="separable", fresnel="schlick", eta=1.5,
                visibility=None, dtype="float32", output="numpy", fast=False):
     """Lumitexels m[p, l, c] (paper Eq. 1) of P points under each of the rig's L LEDs, seen from
-    `camera` (default: the rig's first camera). Returns numpy (P, L, 3), or torch if the inputs are
+    `camera` (default: the rig's first camera). Inputs: position (P, 3) mm, normal and tangent (P, 3) unit
+    vectors (the tangent is alpha_x's axis), all in the rig's world frame (twin.rig.units); rho_d, rho_s (P, 3);
+    alpha_x, alpha_y (P,) GGX roughness; transparency (P,) or None. Returns numpy (P, L, 3) in the convention's
+    units (module docstring: W m^-2 sr^-1 per unit drive for "physical"), or torch if the inputs are
     torch tensors (then differentiable w.r.t. normal, tangent, rho_d, rho_s, alpha_x, alpha_y).
     output="torch" with array inputs returns a torch tensor on `device` that shares the kernel's output
     memory (zero-copy, no autograd): training data made on the device where the network trains.
@@ -93,7 +96,8 @@ def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y,
                  convention="physical", device="cpu", camera=None, transparency=None, g="separable",
                  fresnel="schlick", eta=1.5, visibility=None, method="fused", dtype="float32",
                  fast=False, tensor_cores=False):
-    """Pattern measurements B[p, k, c] = sum_l W[k, l, c] m[p, l, c] (paper Eq. 2). `patterns`: (K, L, 3)
+    """Pattern measurements B[p, k, c] = sum_l W[k, l, c] m[p, l, c] (paper Eq. 2) of P points: (P, K, 3), the
+    points as `lumitexels` takes them ((P, 3) mm positions, world frame). `patterns`: (K, L, 3)
     or (K, L) relative drive, or a twin.capture.patterns.PatternSet. method="fused" never stores the lumitexels
     (a tiled kernel on CUDA, a loop kernel on CPU); "materialise" computes them (fast: as `lumitexels` does), then
     projects (`project`, cuBLAS, on CUDA, where tensor_cores=True allows TF32 within TF32_PROJECTION_RTOL; the

@@ -57,7 +57,9 @@ def _files(rig: Rig) -> dict[str, bytes]:
 
 
 def save_rig(rig: Rig, directory: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Write `rig` to a folder atomically: either the complete new folder is there, or the old state."""
+    """Write `rig` as a rig folder at `directory` (module docstring: positions in mm, the right-handed world of
+    twin/rig/units.py) atomically: either the complete new folder is there, or the old state; an existing folder is
+    replaced only with `overwrite`. Returns its path."""
     with atomic_folder(directory, overwrite) as tmp:
         for name, data in _files(rig).items():
             (tmp / name).write_bytes(data)

@@ -1,6 +1,7 @@
 """Pictures of per-LED vectors on the unfolded cube (the "cross" image of twin.rig.cross, paper Fig. 5).
 
-`hemicube show pattern` calls `save_pattern_image`. Images are composed at exact pixel sizes (each cross
+`hemicube show pattern` calls `save_pattern_image`. Every picture names the cube's faces on it (face_labels) and has
+a scale: the drive level of a pattern's channels, or the colour map of a scalar vector. Images are composed at exact pixel sizes (each cross
 pixel becomes a SCALE x SCALE block, nearest neighbour) with matplotlib's Agg canvas, never pyplot, so
 they work headless and do not touch global figure state. PNGs are written atomically.
 """
@@ -19,7 +20,10 @@ SCALE = 4  # pixels per cross pixel for a single image
 GRID_SCALE = 2  # ... and per tile of a grid of several frames
 TITLE_PX = 24  # height of the title band above each tile
 MARGIN_PX = 8  # around and between tiles
+BAR_PX = 90  # the scale bar's column, right of the tiles
 DPI = 100
+# the scale of a pattern's RGB drive weights, shown as they are: each channel's level, 255 = the LED at full drive
+PATTERN_SCALE = (0, 255, "drive level of each channel (255 = full)", "gray")
 
 
 def normalise(values, num_leds: int) -> tuple[np.ndarray, tuple[float, float]]:
@@ -59,22 +63,34 @@ def _upscale(img: np.ndarray, s: int) -> np.ndarray:
     return np.repeat(np.repeat(img, s, axis=0), s, axis=1)
 
 
-def save_tiles(tiles: list[tuple[np.ndarray, str]], output, scale: int,
-               colorbar: tuple[float, float] | None = None) -> Path:
-    """Lay out (image, title) tiles on a grid and write a PNG of exactly computed size:
-    ncols = ceil(sqrt(K)) tiles per row; each tile is (128*scale + TITLE_PX) x (192*scale) pixels,
-    with MARGIN_PX around and between tiles. `colorbar` (vmin, vmax) adds an inferno scale bar."""
+def face_labels(rig) -> list[tuple[float, float, str]]:
+    """(x, y, face) in cross-canvas pixels: each face's name (twin.rig.model.Board.face: "-x", "+x", "-y", "+y", "top",
+    "bottom") at the centre of its boards' LEDs, so that a reader of the unfolded cube knows which wall is which."""
+    cp = np.asarray(rig.leds.cross_pixel, np.float64)
+    faces: dict[str, list[int]] = {}
+    for b, board in enumerate(rig.boards):
+        faces.setdefault(board.face, []).append(b)
+    out = []
+    for face, boards in faces.items():
+        sel = np.isin(rig.leds.board, boards)
+        if sel.any():
+            x, y = cp[sel].mean(0)
+            out.append((float(x), float(y), face))
+    return out
+
+
+def tiles_figure(tiles: list[tuple[np.ndarray, str]], scale: int, colorbar: tuple | None = None,
+                 labels: list[tuple[float, float, str]] | None = None):
+    """The matplotlib Figure of save_tiles (its docstring)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
-    from twin.atomic import atomic_path
 
     H, W = CROSS_SHAPE
     th, tw = H * scale, W * scale
     k = len(tiles)
     ncols = math.ceil(math.sqrt(k))
     nrows = math.ceil(k / ncols)
-    bar_px = 90 if colorbar is not None else 0
+    bar_px = BAR_PX if colorbar is not None else 0
     width = ncols * tw + (ncols + 1) * MARGIN_PX + bar_px
     height = nrows * (th + TITLE_PX) + (nrows + 1) * MARGIN_PX
     fig = Figure(figsize=(width / DPI, height / DPI), dpi=DPI, facecolor="white")
@@ -90,15 +106,34 @@ def save_tiles(tiles: list[tuple[np.ndarray, str]], output, scale: int,
         ax.set_axis_off()
         ax.text(0.0, 1.0, title, transform=ax.transAxes, va="bottom", ha="left", fontsize=font,
                 clip_on=False)
+        for lx, ly, text in labels or ():  # on a dark box: readable over any LED colour
+            ax.text((lx + 0.5) * scale, (ly + 0.5) * scale, text, ha="center", va="center", fontsize=font - 1,
+                    color="white", bbox={"facecolor": "black", "alpha": 0.55, "pad": 1.0, "edgecolor": "none"})
     if colorbar is not None:
         from matplotlib import colormaps
         from matplotlib.cm import ScalarMappable
         from matplotlib.colors import Normalize
 
+        vmin, vmax, *rest = colorbar
+        label, cmap = (list(rest) + ["", CMAP])[:2] if rest else ("", CMAP)
         cax = fig.add_axes(((width - bar_px + 10) / width, MARGIN_PX / height, 14 / width,
                             (height - 2 * MARGIN_PX - TITLE_PX) / height))
-        fig.colorbar(ScalarMappable(Normalize(*colorbar), colormaps[CMAP]), cax=cax)
+        bar = fig.colorbar(ScalarMappable(Normalize(vmin, vmax), colormaps[cmap]), cax=cax)
         cax.tick_params(labelsize=8)
+        if label:
+            bar.set_label(label, fontsize=8)
+    return fig
+
+
+def save_tiles(tiles: list[tuple[np.ndarray, str]], output, scale: int, colorbar: tuple | None = None,
+               labels: list[tuple[float, float, str]] | None = None) -> Path:
+    """Lay out (image, title) tiles on a grid and write a PNG of exactly computed size:
+    ncols = ceil(sqrt(K)) tiles per row; each tile is (128*scale + TITLE_PX) x (192*scale) pixels,
+    with MARGIN_PX around and between tiles. `colorbar` (vmin, vmax[, label[, colour map]]) adds a scale bar (the
+    colour map CMAP unless named); `labels` (x, y, text) in cross-canvas pixels are drawn on every tile (face_labels)."""
+    from twin.atomic import atomic_path
+
+    fig = tiles_figure(tiles, scale, colorbar, labels)
     output = Path(output)
     with atomic_path(output, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=DPI, facecolor="white")
@@ -120,7 +155,8 @@ def save_pattern_image(patterns, rig, output, index: int | None = None) -> Path:
         frames = list(range(k))
     w = patterns.weights
     tiles = [(cross_rgb(rig, w[i]), f"{i}: {patterns.names[i]}") for i in frames]
-    return save_tiles(tiles, output, SCALE if len(tiles) == 1 else GRID_SCALE)
+    return save_tiles(tiles, output, SCALE if len(tiles) == 1 else GRID_SCALE, colorbar=PATTERN_SCALE,
+                      labels=face_labels(rig))
 
 
 def save_cross_image(rig, values, output, title: str | None = None) -> Path:
@@ -128,5 +164,5 @@ def save_cross_image(rig, values, output, title: str | None = None) -> Path:
     get a colour bar."""
     values = np.asarray(values)
     _, span = normalise(values, rig.num_leds)
-    bar = span if values.ndim == 1 else None
-    return save_tiles([(cross_rgb(rig, values), title or "")], output, SCALE, colorbar=bar)
+    bar = span if values.ndim == 1 else PATTERN_SCALE if span == (0.0, 1.0) else None
+    return save_tiles([(cross_rgb(rig, values), title or "")], output, SCALE, colorbar=bar, labels=face_labels(rig))

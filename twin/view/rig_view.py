@@ -25,6 +25,7 @@ CAMERA_COLOURS = ("#1f3b73", "#8c2d04", "#225522", "#5b2a86")
 # extent: ~29 degrees of elevation, so the sample and the bottom board are seen well, not at a graze.
 VIEW_DIRECTION = (-0.05, -1.0, 0.55)
 VIEW_DISTANCE = 2.3
+DRIVE_BAR = "drive level"  # the scale bar of a pattern's RGB drive weights, 0 to 255 (255 = full drive)
 
 
 # --- geometry (numpy only, testable without pyvista) ------------------------------------------------
@@ -120,8 +121,10 @@ def default_view(rig) -> tuple[tuple, tuple, tuple]:
 
 
 # --- the scene -----------------------------------------------------------------------------------------
-def build_plotter(rig, values=None, window_size=(1200, 900), off_screen: bool = True):
-    """A pyvista Plotter holding the rig scene with the fixed view (`show_rig` renders it)."""
+def build_plotter(rig, values=None, window_size=(1200, 900), off_screen: bool = True, title: str = ""):
+    """A pyvista Plotter holding the rig scene with the fixed view (`show_rig` renders it). `title` names what the
+    LEDs show (a pattern's frame and name), after the rig's line. Scalar values get a colour bar of their range, RGB
+    values (a pattern's drive weights, in [0, 1]) one of the drive level, 0 to 255."""
     try:
         import pyvista as pv
     except ImportError:
@@ -176,13 +179,21 @@ def build_plotter(rig, values=None, window_size=(1200, 900), off_screen: bool = 
                                              position_y=0.25, height=0.5, color="black"), **kw)
             bar_shown = True
 
+    if kind == "rgb":  # the drive level's bar, from a point that draws nothing (a bar needs a mapped mesh)
+        probe = pv.PolyData(np.asarray(rig.sample.origin, float)[None].repeat(2, 0))
+        probe["drive level"] = np.array([0.0, 255.0])
+        pl.add_mesh(probe, scalars="drive level", cmap="gray", clim=(0, 255), opacity=0.0,
+                    scalar_bar_args=dict(title=DRIVE_BAR, vertical=True, position_x=0.88,
+                                         position_y=0.25, height=0.5, color="black"))
     _add_bottom(pl, rig, pv)
     _add_sample(pl, rig, pv)
     _add_cameras(pl, rig, pv)
+    _add_faces(pl, rig)
     if kind == "none":
         pl.add_legend(bcolor="white", face="circle", size=(0.14, 0.2), loc="upper left")
     pl.add_text(f"rig {rig.name}: {rig.num_leds} LEDs on {len(rig.boards)} boards, "
-                f"{len(rig.cameras)} cameras", position="upper_edge", font_size=11, color="black")
+                f"{len(rig.cameras)} cameras" + (f"\n{title}" if title else ""), position="upper_edge", font_size=11,
+                color="black")
     pl.add_axes(color="black")
     pl.camera_position = [eye, focus, up]
     pl.camera.view_angle = view_angle
@@ -236,6 +247,23 @@ def _add_sample(pl, rig, pv) -> None:
         pl.add_mesh(pv.PolyData(verts, faces=faces), color="#151515", lighting=False)
 
 
+def face_centres(rig) -> dict[str, np.ndarray]:
+    """Each face's name (twin.rig.model.Board.face) -> the centre (3,) of its boards' rectangles, mm."""
+    faces: dict[str, list[np.ndarray]] = {}
+    for b, board in enumerate(rig.boards):
+        if np.any(rig.leds.board == b):
+            faces.setdefault(board.face, []).append(board_rectangle(rig, b)[0].mean(0))
+    return {face: np.mean(c, axis=0) for face, c in faces.items()}
+
+
+def _add_faces(pl, rig) -> None:
+    """Each face's name at its centre, so that a reader knows which wall is which."""
+    centres = face_centres(rig)
+    pl.add_point_labels(np.array(list(centres.values())), list(centres), font_size=12, text_color="black",
+                        shape_color="white", shape_opacity=0.6, show_points=False, always_visible=True,
+                        name="faces")
+
+
 def _add_cameras(pl, rig, pv) -> None:
     """Each camera's frustum down to the sample plane (centre-to-corner lines and the image rectangle
     on the plane), labelled with its name."""
@@ -254,16 +282,16 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def show_rig(rig, values=None, output=None, window_size=(1200, 900)) -> Path | None:
-    """Draw the rig. Off-screen (output given, or no display): write a PNG (default "rig.png")
+def show_rig(rig, values=None, output=None, window_size=(1200, 900), title: str = "") -> Path | None:
+    """Draw the rig (build_plotter). Off-screen (output given, or no display): write a PNG (default "rig.png")
     atomically and return its path. Otherwise open an interactive window and return None."""
     if output is None and has_display():
-        build_plotter(rig, values, window_size, off_screen=False).show()
+        build_plotter(rig, values, window_size, off_screen=False, title=title).show()
         return None
     from twin.atomic import atomic_path
 
     output = Path(output if output is not None else "rig.png")
-    pl = build_plotter(rig, values, window_size, off_screen=True)
+    pl = build_plotter(rig, values, window_size, off_screen=True, title=title)
     try:
         with atomic_path(output, suffix=".png") as tmp:
             pl.screenshot(str(tmp))

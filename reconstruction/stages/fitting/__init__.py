@@ -47,7 +47,7 @@ FITTING_METHODS = {"direct": _fit_direct, "neural": _fit_neural}
 
 def fit_method(rig, positions, lumitexels, *, method: str | None = None, lines=None, line_weights=None,
                secondary=None, grid_shape=None, config: FitConfig = FitConfig(), checkpoint=None,
-               start=None) -> FitResult:
+               start=None, progress: bool = False) -> FitResult:
     """Dispatch to FITTING_METHODS[method] (None: config.method) after checking the inputs (fit_ggx)."""
     if not isinstance(config, FitConfig):
         raise ValueError(f"config must be a FitConfig, got {type(config).__name__}")
@@ -56,12 +56,14 @@ def fit_method(rig, positions, lumitexels, *, method: str | None = None, lines=N
     direct = {k: v for k, v in (("checkpoint", checkpoint), ("start", start)) if v is not None}
     if direct and config.method != "direct":
         raise ValueError(f"a checkpoint or a refit's start belongs to the direct method only, not {config.method!r}")
+    if progress and config.method == "direct":  # the direct method's bar (the neural one's steps show none)
+        direct["progress"] = True
     prob = _problem(rig, positions, lumitexels, lines, line_weights, grid_shape, config, secondary)
     return FITTING_METHODS[config.method](prob, grid_shape, **direct)
 
 
 def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, secondary=None, grid_shape=None,
-            config: FitConfig = FitConfig(), checkpoint=None, start=None) -> FitResult:
+            config: FitConfig = FitConfig(), checkpoint=None, start=None, progress: bool = False) -> FitResult:
     """Fit anisotropic GGX and the local frame per texel (module docstring) with config.method.
 
     positions (N, 3) mm, world; lumitexels (N, L_upper, 3) in network units (upper LEDs in rig order,
@@ -76,9 +78,9 @@ def fit_ggx(rig, positions, lumitexels, *, lines=None, line_weights=None, second
     state so that a killed fit resumes (direct._fit_direct); start (direct method): a refit of some texels after
     their photos changed, from an earlier fit's numbers (direct._fit_direct). Raises ValueError on NaN/Inf or
     mis-shaped input (a source's, when the fit asks for those texels). Deterministic on the CPU: the same inputs and
-    seed give the same result."""
+    seed give the same result. progress: a bar on a terminal (twin.progress; the direct method's)."""
     return fit_method(rig, positions, lumitexels, lines=lines, line_weights=line_weights, secondary=secondary,
-                      grid_shape=grid_shape, config=config, checkpoint=checkpoint, start=start)
+                      grid_shape=grid_shape, config=config, checkpoint=checkpoint, start=start, progress=progress)
 
 
 def to_maps(result: FitResult, grid_shape, size_mm: float, transparency=None, name: str = "fit") -> SVBRDFMaps:

@@ -11,6 +11,8 @@ import time
 import numpy as np
 import torch
 
+from twin.progress import progress_bar
+
 from reconstruction.stages.fitting.candidates import _initial
 from reconstruction.stages.fitting.config import GEOMETRY_SIZE, FitResult
 from reconstruction.stages.fitting.geometry import _geometry, _log_geometry
@@ -25,7 +27,8 @@ from reconstruction.stages.fitting.solver import _levenberg_marquardt, _propagat
 CHECKPOINT_SECONDS = 30.0
 
 
-def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) -> FitResult:
+def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None,
+                progress: bool = False) -> FitResult:
     """Levenberg-Marquardt on the 5 geometry numbers per texel from the best initial candidate, with the
     albedos in closed form at every evaluation (reconstruction.stages.fitting.model), in chunks of `batch` texels;
     then, on a grid (grid_shape given), FitConfig.propagation rounds of neighbour propagation (_propagate), and the
@@ -42,7 +45,8 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) ->
     goes: the numbers of the chunks fitted so far (at most every CHECKPOINT_SECONDS), after each propagation round,
     and after each step of the joint prior. A fit given the state a killed one saved goes on from there and ends
     with the same numbers as one that was never stopped (each chunk's fit depends on its own texels only, and the
-    later phases on the numbers saved); the state's arrays are numpy, the rest JSON-able."""
+    later phases on the numbers saved); the state's arrays are numpy, the rest JSON-able. progress: a bar over the
+    Levenberg-Marquardt iterations of the chunks and the joint prior's trials (twin.progress: on a terminal only)."""
     t_start = time.perf_counter()
     c = prob.config
     redo = None
@@ -76,7 +80,11 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) ->
     last_save = time.perf_counter()
     chunks = _chunks(prob, c.batch) if redo is None else \
         [k for k in torch.nonzero(redo).flatten().split(_chunk_size(prob, c.batch)) if k.numel()]
-    for k in range(state["chunks_done"] if state["phase"] == "chunks" else len(chunks), len(chunks)):
+    joint = grid_shape is not None and c.alpha_prior is not None
+    first = state["chunks_done"] if state["phase"] == "chunks" else len(chunks)
+    bar = progress_bar(total=len(chunks) * c.steps + (c.steps if joint else 0), initial=first * c.steps,
+                       desc="fitting", unit="step", enabled=progress)
+    for k in range(first, len(chunks)):
         idx = chunks[k]
         part = prob.part(idx)
         t0 = time.perf_counter()
@@ -86,7 +94,7 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) ->
             q0 = torch.cat([g[:, :3], torch.log(geom["alpha_x"])[:, None], torch.log(geom["alpha_y"])[:, None]], 1)
         t1 = time.perf_counter()
         seconds["init"] += t1 - t0
-        q[idx] = _levenberg_marquardt(part, q0, history)
+        q[idx] = _levenberg_marquardt(part, q0, history, tick=lambda: bar.update(1))
         seconds["iterations"] += time.perf_counter() - t1
         if time.perf_counter() - last_save >= CHECKPOINT_SECONDS or k == len(chunks) - 1:
             save(chunks_done=k + 1, phase="chunks" if k < len(chunks) - 1 else "propagation")
@@ -109,14 +117,14 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) ->
     parts = _final(prob, q)
     prior = {}
     joint_before = seconds["joint"]
-    if grid_shape is not None and c.alpha_prior is not None:
+    if joint:
         def save_joint(js):
             seconds["joint"] = joint_before + time.perf_counter() - t3
             save(phase="joint", joint=js)
 
         q, prior = _joint_roughness(prob, q, torch.cat([p[2] for p in parts]), grid_shape,
                                     state.get("joint") if state["phase"] == "joint" else None,
-                                    save_joint if checkpoint is not None else None)
+                                    save_joint if checkpoint is not None else None, tick=lambda: bar.update(1))
         sums = []
         parts = _final(prob, q, sums)
         rd, rs, prior["albedo_cg_iterations"] = _joint_albedos(prob, sums, torch.cat([p[2] for p in parts]),
@@ -125,6 +133,8 @@ def _fit_direct(prob: _Problem, grid_shape=None, checkpoint=None, start=None) ->
         sizes = [len(p[2]) for p in parts]
         parts = [(g, loss, a, b) for (g, loss, _, _), a, b in zip(parts, rd.split(sizes), rs.split(sizes))]
     seconds["joint"] = joint_before + time.perf_counter() - t3
+    bar.update(bar.total - bar.n)  # the trials and iterations a converged fit did not need
+    bar.close()
     geom = {k: torch.cat([p[0][k] for p in parts]) for k in parts[0][0]}
     info = {"init_seconds": seconds["init"], "seconds_per_iteration": seconds["iterations"] / max(c.steps, 1),
             "propagation_seconds": seconds["propagation"], "propagation_restarts": restarted,

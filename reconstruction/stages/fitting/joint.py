@@ -22,7 +22,7 @@ from reconstruction.stages.fitting.problem import _chunk_size, _Problem
 
 
 def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_shape, resume: dict | None = None,
-                     save=None) -> tuple[torch.Tensor, dict]:
+                     save=None, tick=None) -> tuple[torch.Tensor, dict]:
     """All texels' numbers at once under a smoothness prior on the roughness (ours;
     FitConfig.alpha_prior = tau). Minimises, over x_i = [u, v, m, c, s] (_to_tensor: the normal's two numbers,
     the mean log alpha and the anisotropy as a vector at twice the tangent angle, so that neighbours compare
@@ -53,9 +53,9 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
       texel fitted to its noise (R_i residuals a texel), not times F, which the misfit of a few mixed texels (a
       printed edge's) can make a hundred times that.
     `resume`: the state a killed run saved (direct._fit_direct's checkpoint), from which the loop goes on as it would
-    have; `save(state)` is called after every trial. Returns (q, info); info's joint_trials lists each trial's
-    [median mu of the free texels, its relative change of F, the share of free texels whose model held] (a refused
-    one's change >= 0), joint_pinned the count of pinned texels."""
+    have; `save(state)` and `tick()` (progress) are called after every trial. Returns (q, info); info's
+    joint_trials lists each trial's [median mu of the free texels, its relative change of F, the share of free texels
+    whose model held] (a refused one's change >= 0), joint_pinned the count of pinned texels."""
     c = prob.config
     R, C = (int(v) for v in grid_shape)
     weights = _colour_weights(rho_d, (R, C), 1.0 / c.alpha_prior ** 2)
@@ -153,6 +153,8 @@ def _joint_roughness(prob: _Problem, q: torch.Tensor, rho_d: torch.Tensor, grid_
                 rows[moving], JJ[moving], Jr[moving] = data(x, moving)
         if save is not None:
             save(state())
+        if tick is not None:
+            tick()
     out = _from_tensor(x.float())
     out[:, 3:5] = out[:, 3:5].clamp(lo, hi)
     return out, {"joint_steps": kept, "joint_cg_iterations": cg, "joint_objective": [F0, F],

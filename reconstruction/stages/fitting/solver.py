@@ -15,7 +15,7 @@ from reconstruction.stages.fitting.model import _loss
 from reconstruction.stages.fitting.problem import _chunk_size, _chunks, _Problem
 
 
-def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -> torch.Tensor:
+def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray, tick=None) -> torch.Tensor:
     """Levenberg-Marquardt on the numbers q (n, 5) = [u, v, theta, log alpha_x, log alpha_y] of every texel at
     once (texels are independent: each has its own 5 x 5 system and damping mu). The Jacobian of the residuals
     (model._residuals, the closed-form albedos re-solved at every evaluation: variable projection) is analytic or by
@@ -26,7 +26,7 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
     refused one drops, keeping the texel's last: a loss and then a kept step's system would evaluate the forward
     model and decode the lumitexels twice, and most steps are kept. log alpha is clamped to alpha_range after each
     step. Texels whose last kept step changed their loss by less than FitConfig.tolerance (relative) or whose mu
-    exceeds 1e10 drop out. history[i] += the sum of the losses after iteration i."""
+    exceeds 1e10 drop out. history[i] += the sum of the losses after iteration i; tick() after each (progress)."""
     c = prob.config
     lo, hi = (math.log(a) for a in c.alpha_range)
     q = q.clone()
@@ -57,6 +57,8 @@ def _levenberg_marquardt(prob: _Problem, q: torch.Tensor, history: np.ndarray) -
                 mu[idx] = torch.where(ok, mu[idx] / 3, mu[idx] * 4)
                 active[idx] = ~((ok & (gain < c.tolerance)) | (mu[idx] > 1e10))
             history[i] += float(loss.sum())
+            if tick is not None:
+                tick()
     return q
 
 
