@@ -123,15 +123,41 @@ def _os_error_line(e: OSError) -> str:
     return f"{line}; {way}" if way else line
 
 
+# the commands whose --device names the Ray workers' device (twin.batch), which the cluster checks, not this machine
+RAY_DEVICE = ("capture-many", "reconstruct-many")
+
+
+def _check_device(device) -> None:
+    """A ValueError (one line) when this machine lacks `device`; the CPU is always there. Warp's own messages while it
+    looks for CUDA (its C code writes them to the stderr file descriptor) are kept off: the error is the one line."""
+    if device is None or device == "cpu":
+        return
+    from twin.optics.inputs import check_device
+
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # a stream without a descriptor (a test's capture): nothing to hide
+        check_device(device)
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), fd)
+        check_device(device)
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     named = any(not a.startswith("-") for a in argv)  # a command: its options are needed, and the packages with them
     args = (build_parser() if named else overview_parser()).parse_args(argv)  # bad usage: argparse's line, exit 2
     try:
-        if getattr(args, "device", None) is not None:  # before any work: a device this machine lacks is one line
-            from twin.optics.inputs import check_device
-
-            check_device(args.device)
+        if args.command not in RAY_DEVICE:  # before any work: a device this machine lacks is one line
+            _check_device(getattr(args, "device", None))
         return args.func(args)
     except (ValueError, FileExistsError, FileNotFoundError, KeyError) as e:  # every input error is a ValueError
         print(f"hemicube: error: {e}", file=sys.stderr)

@@ -201,3 +201,13 @@ def test_one_meaning_per_option_name_with_the_old_name_kept_a_version(capsys):
     assert parser.parse_args(["bench", "capture", "--sample-resolution", "64"]).resolution == 64
     assert parser.parse_args(["reconstruct", "c", "-o", "x", "--resolution", "12"]).resolution == 12
     assert capsys.readouterr().err == ""
+
+
+def test_a_missing_device_is_one_line_in_a_fresh_process(tmp_path):
+    """As a user meets it: a new process, where Warp looks for CUDA for the first time and says so on its own; the
+    command's stderr is still the one line (the Ray batch commands' --device is the cluster's: not checked here)."""
+    r = subprocess.run([sys.executable, "-m", "hemicube.cli", "validate", "--device", "cuda:99", "-o",
+                        str(tmp_path / "out")], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == EXIT_USAGE and len(err) == 1 and "unknown device 'cuda:99'" in err[0], r.stderr
+    assert list(tmp_path.iterdir()) == []
