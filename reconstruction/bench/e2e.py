@@ -1,14 +1,15 @@
 """`hemicube bench e2e`: a capture and its reconstruction as users run them, end to end, no extrapolation.
 
 The real commands, each its own process, one after the other (as in docs/performance.md's end-to-end figures):
-  capture       `hemicube capture --rig R --sample S --seed N [--sample-resolution N] [--frames F] --device D -o W/capture`
+  capture       `hemicube capture --rig R --sample S --seed N [--sample-resolution N] [--frames F] --device D
+                 -o W/capture`
   reconstruct   `hemicube reconstruct W/capture [--resolution N] [--network NET] --device D -o W/reconstruction`
 with the commands' own defaults for everything not given (the bench's `--resolution` sets both the sample's maps,
-capture's `--sample-resolution`, and the texture grid, reconstruct's `--resolution`). Per stage: the wall time of the process (imports and Warp's kernel loads included), its exit
-code, the bytes it wrote, the host's peak resident memory of the process, and, on CUDA, the peak of the device's
-used memory polled at device level while it ran (twin.bench.PeakDeviceMemory: every process's Warp and torch
-allocations together). The reconstruction's own stage times come from its summary
-(ReconstructionFolder.summary).
+capture's `--sample-resolution`, and the texture grid, reconstruct's `--resolution`). Per stage: the wall time of the
+process (imports and Warp's kernel loads included), its exit code, the bytes it wrote, the host's peak resident memory
+of the process, and, on CUDA, the peak of the device's used memory polled at device level while it ran
+(twin.bench.PeakDeviceMemory: every process's Warp and torch allocations together). The reconstruction's own stage
+times come from its summary (ReconstructionFolder.summary).
 
 Baseline check, the product's own verification: every file of the capture matches its manifest's checksum
 (twin.capture.session.verify), and the reconstruction folder's every file matches its summary's

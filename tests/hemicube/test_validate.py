@@ -1,9 +1,10 @@
 """The main job, `hemicube validate`: simulate, reconstruct, score, with the mini rig's thresholds (CI).
 
 The thresholds themselves live in reconstruction.evaluation.validation.THRESHOLDS and docs/accuracy.md; this test runs
-docs/ci.md's example job's command, the README's plus --junit (on the session's shared capture, resumed) and checks that it passes them, prints the
-table, and writes the report. A second run on a map folder (`--sample DIR`) checks that any OpenSVBRDF map
-folder goes through the same path. The material suite is tests/test_validate_suite.py.
+docs/ci.md's example job's command, the README's plus --junit (on the session's shared capture, resumed), and checks
+that it passes them, prints the table, and writes the report and the JUnit file. A second run on a map folder
+(`--sample DIR`) checks that any OpenSVBRDF map folder goes through the same path. The material suite is
+tests/hemicube/test_validate_suite.py.
 """
 from __future__ import annotations
 
