@@ -55,8 +55,7 @@ def _front() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
 
 def overview_parser() -> argparse.ArgumentParser:
     """The front alone: every command's name and help, none of their options. What `hemicube`, `hemicube --help` and
-    `hemicube --version` parse with, so that they import no package's heavy modules (torch, Warp): a second, not
-    seconds."""
+    `hemicube --version` parse with, so that they import no package's heavy modules (torch, Warp)."""
     import importlib
 
     p, sub = _front()
@@ -123,10 +122,6 @@ def _os_error_line(e: OSError) -> str:
     return f"{line}; {way}" if way else line
 
 
-# the commands whose --device names the Ray workers' device (twin.batch), which the cluster checks, not this machine
-RAY_DEVICE = ("capture-many", "reconstruct-many")
-
-
 def _check_device(device) -> None:
     """A ValueError (one line) when this machine lacks `device`; the CPU is always there. Warp's own messages while it
     looks for CUDA (its C code writes them to the stderr file descriptor) are kept off: the error is the one line."""
@@ -156,7 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     named = any(not a.startswith("-") for a in argv)  # a command: its options are needed, and the packages with them
     args = (build_parser() if named else overview_parser()).parse_args(argv)  # bad usage: argparse's line, exit 2
     try:
-        if args.command not in RAY_DEVICE:  # before any work: a device this machine lacks is one line
+        # before any work: a device this machine lacks is one line; a command whose --device is another machine's
+        # (the Ray batch commands': the cluster's, twin.batch) says so with device_here=False
+        if getattr(args, "device_here", True):
             _check_device(getattr(args, "device", None))
         return args.func(args)
     except (ValueError, FileExistsError, FileNotFoundError, KeyError) as e:  # every input error is a ValueError

@@ -258,7 +258,7 @@ def register(sub) -> None:
     s.add_argument("--network", help=f"'pretrained' or a `hemicube train` run folder (default: {rc.network})")
     s.add_argument("--device", help=f"cpu or cuda: with cuda, one GPU per task (default: {rc.device})")
     add_arguments(s)
-    s.set_defaults(func=cmd_reconstruct_many)
+    s.set_defaults(func=cmd_reconstruct_many, device_here=False)  # --device: the Ray workers' (twin.batch)
 
     s = sub.add_parser("train", help=COMMANDS["train"])
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")

@@ -322,7 +322,7 @@ def register(sub) -> None:
     s.add_argument("-o", "--output", required=True, help="folder for one capture folder per sample and batch.json")
     s.add_argument("--device", default="cpu", help="cpu or cuda: with cuda, one GPU per task (default: %(default)s)")
     add_arguments(s)
-    s.set_defaults(func=cmd_capture_many)
+    s.set_defaults(func=cmd_capture_many, device_here=False)  # --device: the Ray workers' (twin.batch)
 
     ctl = sub.add_parser("controller", help=COMMANDS["controller"])
     ctl = ctl.add_subparsers(dest="controller_command", required=True)

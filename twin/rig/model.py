@@ -259,6 +259,15 @@ class Rig:
     def num_leds(self) -> int:
         return len(self.leds)
 
+    def face_leds(self) -> dict[str, np.ndarray]:
+        """Each face of the cube (Board.face: "-x", "+x", "-y", "+y", "top", "bottom") -> the indices of its boards'
+        LEDs, for the faces that have any, in board order."""
+        faces: dict[str, list[int]] = {}
+        for b, board in enumerate(self.boards):
+            faces.setdefault(board.face, []).append(b)
+        sel = {face: np.flatnonzero(np.isin(self.leds.board, boards)) for face, boards in faces.items()}
+        return {face: idx for face, idx in sel.items() if idx.size}
+
     @property
     def primary(self) -> Camera:
         """The first camera (the 90 deg view in the built-in rigs)."""

@@ -67,16 +67,7 @@ def face_labels(rig) -> list[tuple[float, float, str]]:
     """(x, y, face) in cross-canvas pixels: each face's name (twin.rig.model.Board.face: "-x", "+x", "-y", "+y", "top",
     "bottom") at the centre of its boards' LEDs, so that a reader of the unfolded cube knows which wall is which."""
     cp = np.asarray(rig.leds.cross_pixel, np.float64)
-    faces: dict[str, list[int]] = {}
-    for b, board in enumerate(rig.boards):
-        faces.setdefault(board.face, []).append(b)
-    out = []
-    for face, boards in faces.items():
-        sel = np.isin(rig.leds.board, boards)
-        if sel.any():
-            x, y = cp[sel].mean(0)
-            out.append((float(x), float(y), face))
-    return out
+    return [(*map(float, cp[idx].mean(0)), face) for face, idx in rig.face_leds().items()]
 
 
 def tiles_figure(tiles: list[tuple[np.ndarray, str]], scale: int, colorbar: tuple | None = None,

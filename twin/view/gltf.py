@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.view.rig_view import BOARD_COLOURS, CAMERA_COLOURS, board_rectangle, camera_frustum
+from twin.view.rig_view import BOARD_COLOURS, CAMERA_COLOURS, board_rectangle, camera_frustum, led_pitch
 
 # rig world (mm, +z up) -> glTF (m, +Y up): a proper rotation, then the unit
 TO_GLTF = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -66,17 +66,21 @@ def rig_scene(rig):
     trimesh = _trimesh()
 
     scene = trimesh.Scene()
-    pitch = np.median(np.linalg.norm(np.diff(rig.leds.positions, axis=0), axis=1))
-    size = max(0.3 * float(pitch), 1.0) * MM  # an LED's marker: a third of the pitch, at least 1 mm
     for b, board in enumerate(rig.boards):
         colour = BOARD_COLOURS[b % len(BOARD_COLOURS)]
         corners, _ = board_rectangle(rig, b)
         scene.add_geometry(_quad(corners, colour), node_name=f"board_{board.name}", geom_name=f"board_{board.name}")
-        led = trimesh.creation.icosphere(subdivisions=0, radius=size / 2)
+        sel = np.flatnonzero(rig.leds.board == b)
+        if sel.size == 0:
+            continue
+        # an LED's marker: a third of its board's pitch (rig_view's), at least 1 mm across
+        led = trimesh.creation.icosphere(subdivisions=0, radius=max(0.3 * led_pitch(rig, sel), 1.0) * MM / 2)
         led.visual.face_colors = _colour(colour)
         geom = f"led_{board.name}"
-        scene.geometry[geom] = led  # one mesh, a node per LED (scene.add_geometry per node costs 2 ms each)
-        for i in np.flatnonzero(rig.leds.board == b):
+        # one mesh, a node per LED added to the graph itself: scene.add_geometry per node re-derives the scene's
+        # caches each time, which for the paper rig's 16,384 LEDs is most of the export
+        scene.geometry[geom] = led
+        for i in sel:
             T = np.eye(4)
             T[:3, 3] = to_gltf(rig.leds.positions[i])
             scene.graph.update(frame_to=f"led_{i:05d}", frame_from=scene.graph.base_frame, matrix=T, geometry=geom)

@@ -154,7 +154,7 @@ def build_plotter(rig, values=None, window_size=(1200, 900), off_screen: bool = 
         # The viewer sees a board from behind when it is outside the board's plane: cut it away, i.e.
         # draw only its outline, and its LEDs as small flat dots between which the inside shows.
         cut = np.dot(np.subtract(eye, corners.mean(0)), n) < 0
-        size = float(np.clip(0.65 * _led_pitch(rig, sel) * px_per_mm, 3, 24))
+        size = float(np.clip(0.65 * led_pitch(rig, sel) * px_per_mm, 3, 24))
         if cut:
             pl.add_mesh(pv.PolyData(np.vstack([corners, corners[:1]]), lines=[5, 0, 1, 2, 3, 4]),
                         color="#555555", line_width=1.5)
@@ -200,7 +200,7 @@ def build_plotter(rig, values=None, window_size=(1200, 900), off_screen: bool = 
     return pl
 
 
-def _led_pitch(rig, sel) -> float:
+def led_pitch(rig, sel) -> float:
     """Typical distance between an LED and its nearest neighbour on the same board (mm)."""
     from scipy.spatial import cKDTree
 
@@ -249,11 +249,8 @@ def _add_sample(pl, rig, pv) -> None:
 
 def face_centres(rig) -> dict[str, np.ndarray]:
     """Each face's name (twin.rig.model.Board.face) -> the centre (3,) of its boards' rectangles, mm."""
-    faces: dict[str, list[np.ndarray]] = {}
-    for b, board in enumerate(rig.boards):
-        if np.any(rig.leds.board == b):
-            faces.setdefault(board.face, []).append(board_rectangle(rig, b)[0].mean(0))
-    return {face: np.mean(c, axis=0) for face, c in faces.items()}
+    return {face: np.mean([board_rectangle(rig, b)[0].mean(0) for b in np.unique(rig.leds.board[idx])], axis=0)
+            for face, idx in rig.face_leds().items()}
 
 
 def _add_faces(pl, rig) -> None:
