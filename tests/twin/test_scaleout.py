@@ -170,8 +170,9 @@ def test_run_batch_kills_an_attempt_that_runs_over_its_timeout(tmp_path):
     """--timeout: the hung job's worker is killed after each attempt's timeout and the job is reported failed
     after 1 + retries attempts; the job beside it, queued behind it on a one-slot Ray, still runs. An attempt's
     time counts from its submission, so it includes the start of a new worker (the killed one's replacement) and
-    its imports: up to ~10 s on two idle cores (torch's import alone a few), but over 20 s beside the material
-    suite's two processes on CI's two cores, so 45 s; a timeout of a few seconds times the quick job out too."""
+    its imports (torch's among them), which take several times longer beside the material suite's two processes on
+    CI's two cores than on idle ones: the timeout leaves room for that, where one of a few seconds would time the quick
+    job out too."""
     from ray import cloudpickle
 
     from twin.batch import BatchOptions, Job, run_batch
