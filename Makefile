@@ -40,7 +40,7 @@ test: setup
 
 # The fast tier: every test but those of the end-to-end files, which tests/conftest.py names (END_TO_END_FILES) and
 # marks e2e: test_validate_suite, test_scaleout, test_hardware_capture, test_bench_pipeline, test_capture,
-# test_alignment, test_validate, test_train, test_design, test_reconstruct_resume, test_calibration,
+# test_alignment, test_readme_tour, test_validate, test_train, test_design, test_reconstruct_resume, test_calibration,
 # test_calibration_colour, test_calibration_leds, test_distributed, test_notebooks; and but the tests marked slow
 # in the other files (those of the main job's capture, the benches' whole runs, gradient checks).
 FAST_MARKERS ?= not e2e and not slow

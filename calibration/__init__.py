@@ -15,4 +15,18 @@ values to photos are the camera's (twin.camera.correction).
 
 Each procedure module has its calibration from photos and, beside it, its capture in the twin scored against the
 twin's truth (`calibrate_cameras`, `calibrate_vignetting`, `calibrate_colour`, `calibrate_leds_from_plate`).
-docs/calibration.md describes each procedure and its goals."""
+docs/calibration.md describes each procedure and its goals.
+
+Exported here (`__all__`, each loaded on first use: `import calibration` imports neither Warp nor torch):
+    calibrate_cameras, calibrate_vignetting, calibrate_colour, calibrate_leds_from_plate   the procedures
+    stage, calibrate                                                                        the lab's run of them"""
+from __future__ import annotations
+
+from twin.lazy import lazy_exports as _lazy_exports
+
+# each exported name and the module that defines it, loaded on first use
+_LAZY = {"calibrate_cameras": "calibration.cameras", "calibrate_vignetting": "calibration.vignetting",
+         "calibrate_colour": "calibration.colour", "calibrate_leds_from_plate": "calibration.leds",
+         "stage": "calibration.lab", "calibrate": "calibration.lab"}
+__all__ = list(_LAZY)
+__getattr__, __dir__ = _lazy_exports(__name__, _LAZY)

@@ -161,7 +161,17 @@ def calibrate_cameras(nominal, truth, views: int, seed: int, supersample: int = 
     against the truth, with the nominal camera's own errors beside it for comparison). board_scale s: the board
     is photographed by each camera's lens on a sensor of s x s times its pixels (Camera.resized) and the
     result scaled back: the way for the mini rig, whose 222 x 192 px cameras are too small for corner
-    detection (the paper rig's cameras are the mini rig's at s = 12); rms_px is then in those finer pixels."""
+    detection (the paper rig's cameras are the mini rig's at s = 12); rms_px is then in those finer pixels.
+
+    nominal, truth   Rigs (lengths in mm): the values known beforehand, and the device the photos are taken of
+    views            board poses per camera (at least MIN_VIEWS = 4), plus one view of the board lying flat on the
+                     sample plane for the pose
+    seed             the poses' and the photos' noise; supersample: rays per pixel side of the board's photos
+    The calibrated camera: K (3, 3) in pixels, dist (5,) OpenCV (k1, k2, p1, p2, k3), R (3, 3), t (3,) mm. The
+    report per camera: views, corners, rms_px (reprojection RMS, pixels), focal_pct (%), principal_px (pixels),
+    centre_mm (mm), rotation_deg (degrees), sample_px_median and sample_px_max (pixels: where the points of the
+    sample area land, the calibrated camera against the true one), nominal_error (the same scores of the nominal
+    camera), goals (CAMERA_GOALS) and passed."""
     import sys
     from dataclasses import replace
 

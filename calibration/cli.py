@@ -44,6 +44,8 @@ COMMANDS = {
 
 
 def register(sub) -> None:
+    from twin.capture.plan import DEFAULT_SEED
+
     s = sub.add_parser("calibrate", help=COMMANDS["calibrate"])
     s.add_argument("what", nargs="+", choices=(*STAGES, "all"), help="what to calibrate. Several (or all): each "
                    "in the order cameras, vignetting, colour, leds, on the rig the ones before it calibrated, against "
@@ -55,8 +57,8 @@ def register(sub) -> None:
     s.add_argument("--board-scale", type=int, default=1, help="cameras: photograph the board on a sensor of S x S "
                    "times the camera's pixels, the same lens, and scale the result back (default: %(default)s; the "
                    "mini rig's cameras need 12, the paper rig's size)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the board poses and the photos' noise (default: "
-                   "%(default)s)")
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the board poses and the photos' noise "
+                   "(default: %(default)s)")
     s.add_argument("--frames", type=int, default=None, help="frames averaged per photo (vignetting: flat-field "
                    "and acrylic photos, default 32; leds and colour: plate and chart photos, default 16)")
     s.add_argument("--led-step", type=int, default=1, help="leds, bottom: calibrate every N-th upper (bottom) LED, "

@@ -126,7 +126,16 @@ def calibrate_colour(nominal, truth, spectra, frames: int, seed: int, step: int 
     as the nominal rig has them: calibrated beforehand). The light is every `step`-th upper LED (the white need
     not be uniform: each patch is divided by the plate at the same pixels), the cameras binned `binning` x
     `binning`. Returns (the nominal rig with the calibrated crosstalks, a report per camera scored against the
-    truth, with the nominal crosstalk's own error beside it)."""
+    truth, with the nominal crosstalk's own error beside it).
+
+    nominal, truth are Rigs; `spectra` the true device's spectral sensitivities and LED spectra
+    (twin.camera.spectral.device_spectra); `frames` frames averaged per photo; `seed` draws the photos' noise.
+    The calibrated crosstalk is each camera's sensor.crosstalk, a (3, 3) matrix from LED RGB to camera RGB. The
+    report per camera: photos, frames_per_photo, leds_lit, binning, camera_pixels ([W, H] binned, pixels),
+    crosstalk and true_crosstalk ((3, 3) lists), crosstalk_residual_max (the largest entry of M^-1 M_true - I: a
+    fraction, 0.005 = 0.5%), nominal_error, to_xyz_from_camera_rgb and to_xyz_from_led_rgb ((3, 3) lists to CIE
+    XYZ), white_led_rgb (3 values, the brightest 1), delta_e2000 ({median, p90, max, per_patch}: CIE ΔE2000 of
+    the 24 patches), goals (COLOUR_GOALS) and passed."""
     import itertools
     import sys
     from dataclasses import replace

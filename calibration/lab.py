@@ -48,7 +48,14 @@ def stage(what: str, nominal, *, frames: int | None, led_step: int, binning: int
           seed: int, perturb: int | None, progress: bool = True) -> Stage:
     """Procedure `what` of STAGES on the rig `nominal`, set up: how the true device gets its errors, the procedure
     with these settings (frames None: each procedure's default), its settings for the report and its summary
-    line. The settings are `hemicube calibrate`'s options of the same names; a bad one is refused by name."""
+    line. The settings are `hemicube calibrate`'s options of the same names; a bad one is refused by name.
+
+    what         "cameras", "vignetting", "colour", "leds" or "bottom"
+    frames       frames averaged per photo (None: 16 for leds and colour, 32 for the others)
+    led_step     every N-th LED (leds, bottom: calibrated; colour: lit); binning: camera pixels binned B x B
+    views        board poses per camera (cameras, >= 4); board_scale: the board photographed on S x S times the
+                 camera's pixels (cameras)
+    seed         the board poses and the photos' noise; perturb: the true device's error seed (None: none)"""
     from twin.rig.perturb import perturb_cameras, perturb_leds, perturb_vignetting
 
     frames = frames if frames is not None else (16 if what in ("leds", "colour") else 32)
@@ -112,7 +119,9 @@ def calibrate(nominal, stages: dict, perturb: int | None) -> tuple:
     """Run `stages` ({what: Stage}, in the lab's order) against one true device that has every stage's errors at
     once (perturbation seed `perturb`; None: the nominal rig), each on the rig the ones before it calibrated.
     Returns (the calibrated rig, the truth, {what: report per camera}); a procedure's own error is a ValueError
-    naming it, and nothing is written."""
+    naming it, and nothing is written. The rigs are twin Rigs (lengths in mm); each report is its procedure's
+    (calibrate_cameras: pixels, %, mm, degrees; calibrate_vignetting and calibrate_colour: % and ΔE2000;
+    calibrate_leds_from_plate: mm, degrees, %). `write` saves the rigs and a report.json."""
     truth = nominal
     for st in stages.values():  # the true device has every stage's errors at once
         truth = st.perturb(truth, perturb)

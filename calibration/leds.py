@@ -322,7 +322,15 @@ def calibrate_leds_from_plate(nominal, truth, frames: int, seed: int, step: int 
     calibrated beforehand). bottom: the bottom LEDs instead, each alone, through the empty holder's acrylic
     (one height); those whose light's crest the photos do not see (calibration.leds.crest_seen) keep their
     nominal values. Returns (the nominal rig with the calibrated LEDs, a report scored against the truth, with
-    the nominal rig's own errors beside it)."""
+    the nominal rig's own errors beside it).
+
+    nominal, truth are Rigs (mm); `seed` draws the photos' noise. Calibrated per LED: position (3,) mm, unit
+    normal (3,), intensity (3,) RGB and the cosine profile's exponent (profile[0]; twin.optics.emitter). The
+    report, {"leds": ...} (or {"bottom": ...}): photos, frames_per_photo, led_step, binning, camera_pixels
+    ({camera: [W, H]} binned, pixels), plate_heights_mm, calibrated and skipped LEDs, fit_rms_log (median RMS of
+    the fit in log radiance), then score_leds' figures, each {median, p90, max} over the LEDs: position_mm (mm),
+    normal_deg (degrees), profile_shape_pct, intensity_pct and emission_pct (%); nominal_error (the same of the
+    nominal rig), goals (LED_GOALS) and passed."""
     import sys
 
     from twin.camera.hdr import still_photo

@@ -132,7 +132,15 @@ def calibrate_vignetting(nominal, truth, frames: int, seed: int, progress: bool 
     """Photograph a flat-field source with every camera of the TRUE rig (its radial falloff and its per-pixel
     maps, twin.rig.perturb.perturb_vignetting) at 0 and 180 degrees, `frames` frames each, and calibrate each
     camera's flat field from those photos alone. Returns (the nominal rig with the fitted radial coefficients
-    and the per-pixel maps beyond them, a report per camera scored against the truth)."""
+    and the per-pixel maps beyond them, a report per camera scored against the truth).
+
+    nominal, truth are Rigs; `seed` draws the photos' noise. The fitted model: each camera's radial falloff
+    1 + a r^2 + b r^4 + c r^6 (r: the distance from the principal point over the half-diagonal, both in pixels), its
+    sensor's `vignetting` (a, b, c), and the per-pixel factor beyond it, an (H, W) float32 map in the rig's
+    `flat_fields` (H, W: the camera's pixels). The report per camera: photos, frames_per_photo, radial and
+    true_radial (a, b, c), map_about_radial_rms_pct (%), flat_field_pct and radial_model_pct ({median, p95, p99,
+    max} in %, each up to one factor, over every pixel), true_falloff ([darkest / brightest, 1]) and passed (the
+    flat field's p95 within FLAT_FIELD_GOAL_PCT = 0.5%)."""
     import sys
     from dataclasses import replace
 

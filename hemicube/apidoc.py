@@ -11,7 +11,8 @@ PACKAGES = ("twin", "calibration", "reconstruction", "hemicube")
 
 def build(output) -> Path:
     """Write the reference to `output` (a folder); returns its index.html. The names a package loads on first use
-    (twin's forward model: PEP 562) are loaded first, since pdoc reads a module's own attributes."""
+    (every package's exports from heavy modules: PEP 562, twin.lazy) are loaded first, since pdoc reads a module's
+    own attributes."""
     try:
         import pdoc
     except ImportError:

@@ -147,6 +147,11 @@ def _check_device(device) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The `hemicube` command: `argv` its arguments without the program's name, a list of strings (default:
+    sys.argv[1:]), e.g. main(["validate", "--rig", "mini"]). Returns the exit code (twin.exitcodes: 0 done, 1 a goal
+    or threshold missed, 2 bad usage or input, 3 the system refused a read or a write); an input error is one line
+    on stderr, no traceback. The commands print their results on stdout; option values are in the units their
+    help states (mm, pixels, seconds)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     named = any(not a.startswith("-") for a in argv)  # a command: its options are needed, and the packages with them
     args = (build_parser() if named else overview_parser()).parse_args(argv)  # bad usage: argparse's line, exit 2

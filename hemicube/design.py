@@ -393,7 +393,9 @@ def register(sub) -> None:
     o.add_argument("-o", "--output", required=True, help="output folder (re-run to resume; any other existing "
                    "path is refused)")
     o.add_argument("--steps", type=int, help="training steps (default: the design's)")
-    o.add_argument("--seed", type=int, help="training seed (default: the design's first)")
+    o.add_argument("--seed", type=int, help="training seed (default: taken from the design, the first of its "
+                   "[training] seeds, 0 where the file lists none: the seed its figures were trained with, not the "
+                   "other commands' default)")
     o.add_argument("--device", default="cpu", help="torch device (default: %(default)s)")
     o.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     o.set_defaults(func=lambda a: optimise(a.design, a.output, a.device, a.steps, a.seed, not a.no_progress))

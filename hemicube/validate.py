@@ -154,7 +154,17 @@ def run_validation(rig="mini", sample="ramps", device="cpu", as_json=False, outp
     """The main job: rig and forward-model checks, then capture -> reconstruct -> score (see the module
     docstring). Exit code 0 when every check and every threshold passes. On the CPU, a rig whose capture
     would take hours (the paper rig) is refused with a timed estimate first, unless `anyway`. `junit`: a file to
-    write the checks and thresholds to as JUnit XML (hemicube.junit)."""
+    write the checks and thresholds to as JUnit XML (hemicube.junit).
+
+    rig         a built-in rig's name or a rig folder (twin.load_rig; lengths in mm)
+    sample      a built-in sample's name, "NAME@SEED" or a map folder (twin.materials.samples.load_sample)
+    device      where the capture and the reconstruction run: "cpu", "cuda" or "cuda:N"
+    output      the folder for capture/, reconstruction/ and report/
+                (default: hemicube-validate/RIG_SAMPLE_seedSEED_xFRAMES)
+    resolution  texels a side of the reconstruction's texture grid (default: ReconstructConfig's, 48)
+    seed        the capture's noise; frames: each exposure taken that many times (DEFAULT_FRAMES = 4)
+    as_json     print the report as JSON (metrics in the units their names end in: _px pixels, _deg degrees,
+                _pct %, _db dB, _s seconds, _mm mm) instead of the table"""
     import twin
     from reconstruction.evaluation.metrics import format_table, to_jsonable
     from twin.capture.plan import check_frames
@@ -295,7 +305,13 @@ def run_suite(names=None, rig="mini", device="cpu", output=None, resolution: int
               jobs: int | None = None, as_json=False, frames: int = DEFAULT_FRAMES, junit=None) -> int:
     """`hemicube validate --suite [NAMES]` (module docstring). Exit code 0 when every check and every
     threshold of every sample passes. `junit`: a file for the JUnit XML (hemicube.junit): the checks, then one test
-    suite a sample."""
+    suite a sample.
+
+    names is a list of sample names or map folders (default: the material suite, twin.materials.samples.SUITE);
+    rig, device, resolution (texels a side), seed, frames and as_json are run_validation's. jobs: samples at once
+    in their own processes (default: the CPU cores; 1 on a GPU). output: the folder, one sub-folder a sample
+    (default: hemicube-validate/suite_RIG_seedSEED_xFRAMES...). The table's and the JSON's figures are in the units
+    their names end in (_px pixels, _deg degrees, _pct %, _db dB, _s seconds)."""
     res = suite_results(names, rig, device, output, resolution, seed, jobs, frames)
     checks, ordered, report, ok = res["checks"], res["samples"], res["report"], res["passed"]
     names = [r["sample"] for r in ordered]

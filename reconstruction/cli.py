@@ -265,7 +265,8 @@ def register(sub) -> None:
     s.add_argument("--steps", type=int, help=f"optimiser steps in all (default: {tc.steps})")
     s.add_argument("--batch", type=int, help=f"lumitexels per step (default: {tc.batch})")
     s.add_argument("--lr", type=float, help=f"Adam learning rate (default: {tc.lr:g})")
-    s.add_argument("--seed", type=int, help=f"seed of the initial weights and the data stream (default: {tc.seed})")
+    s.add_argument("--seed", type=int, default=tc.seed, help="seed of the initial weights and the data stream "
+                   "(default: %(default)s)")
     s.add_argument("--device", help=f"torch/Warp device: cpu, cuda, cuda:N (default: {tc.device})")
     s.add_argument("--eval-every", type=int, help=f"steps between held-out evaluations (default: {tc.eval_every})")
     s.add_argument("--checkpoint-every", type=int, help=f"steps between checkpoints "
@@ -332,6 +333,8 @@ def register_bench(bench) -> None:
 def _register_bench_pipeline(bench) -> None:
     """`bench latent-ceiling`, `bench fit-limits`, `bench e2e`, `bench train-scaling` (cmd_bench_pipeline). No
     option has a parser default: what is not given is the bench function's default, or --tiny's size."""
+    from twin.capture.plan import DEFAULT_SEED
+
     def parser(name: str, text: str, device: str = "torch/Warp device: cpu, cuda (default: cpu)"):
         s = bench.add_parser(name, help=text)
         s.add_argument("--rig", help="built-in rig (paper, mini) or rig folder (default: paper)")
@@ -359,7 +362,7 @@ def _register_bench_pipeline(bench) -> None:
         else:
             s.add_argument("--noise", type=float, help="relative sigma of the photos' noise (default: 0.005, about "
                            "a four-frame photo's)")
-            s.add_argument("--seed", type=int, help="seed of the noise (default: 7)")
+            s.add_argument("--seed", type=int, help=f"seed of the noise (default: {DEFAULT_SEED})")
             s.add_argument("--frames", type=int, help="frames an exposure the fit weighs the photos for (default: "
                            "the capture plan's)")
             s.add_argument("--fit-iterations", type=int, help="the fit's iterations (default: its own)")
@@ -371,7 +374,7 @@ def _register_bench_pipeline(bench) -> None:
     s.add_argument("--sample", help="built-in sample or folder of maps (default: ramps)")
     s.add_argument("--resolution", type=int, help="the sample's maps and the texture grid, texels per side "
                    "(default: each command's own)")
-    s.add_argument("--seed", type=int, help="the capture's seed (default: 0)")
+    s.add_argument("--seed", type=int, help=f"the capture's seed (default: {DEFAULT_SEED})")
     s.add_argument("--frames", type=int, help="frames an exposure (default: the capture's)")
     s.add_argument("--network", help="for the reconstruction: a `hemicube train` run folder (default: the shipped)")
     s.add_argument("--workdir", help="keep the capture and reconstruction folders here (default: a temporary "

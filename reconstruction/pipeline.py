@@ -44,6 +44,22 @@ FINETUNE_PHOTOS = ("lines", "lines+learned")
 
 @dataclass(frozen=True)
 class ReconstructConfig:
+    """The pipeline's settings, `hemicube reconstruct`'s options (each field's comment says why its default):
+
+    resolution        texels a side of the square texture grid: the maps are resolution x resolution
+    size_mm           the grid's side in mm (None: detected from the photos, reference §6.1)
+    holdout_line      index of the line photo left out of fine-tuning (None: the brightest over the sample)
+    footprint         how a texel's value is read from the photos' pixels: "cell", "point" or "gaussian"
+    finetune_photos   "lines" or "lines+learned": the photos fine-tuning fits
+    spill_ratio       a ratio > 1 of a neighbour's specular peak to a texel's own above which the texel is fitted
+                      again from demosaiced photos (None: never)
+    network           "pretrained" (the network shipped for the capture's rig) or a `hemicube train` run folder
+    device            "cpu", "cuda" or "cuda:N"
+    align, alignment_check, finetune, fit   each stage's own settings (their classes in reconstruction.stages)
+    accept_alignment  go on when the alignment check flags the alignment
+    A bad footprint, finetune_photos or spill_ratio is a ValueError when the config is made; the others are checked
+    against the capture before any work (check_settings)."""
+
     # texels per side of the texture grid; the paper reconstructs 1024 x 1024 (reference §6.1). 48 is this
     # project's default for the mini rig on a CPU (its 120 mm sample spans ~110 primary pixels: ~2 px a texel)
     resolution: int = 48
@@ -168,7 +184,18 @@ def check_settings(config: ReconstructConfig, session, rig):
 def reconstruct(capture, output, config: ReconstructConfig = ReconstructConfig(), *, progress: bool = True,
                 rig=None, break_lock: bool = False) -> Reconstruction:
     """Run the pipeline on a capture folder into `output` (module docstring). `break_lock`: take the stage folder's
-    lock that another host recorded (twin.lock)."""
+    lock that another host recorded (twin.lock).
+
+    capture    a capture folder (twin.capture.session: `hemicube capture`'s, or the real device's)
+    output     the reconstruction folder to write (reconstruction.output), a path
+    rig        the rig to reconstruct with (default: the rig folder the capture carries; lengths in mm)
+    progress   each stage's progress on stderr
+    Returns a Reconstruction with R = config.resolution: directory (`output`), measurements (its .grid: R x R
+    texels over grid.size_mm mm, texel_mm each), latent (R * R, 72), maps (twin.materials.samples.SVBRDFMaps
+    on that grid: rho_d (R, R, 3) in [0, 1], rho_s (R, R, 3), alpha (R, R, 2) GGX roughness, normal and tangent
+    (R, R, 3) unit vectors in the world frame, transparency (R, R)), holdout_line, timings ({stage}_s in seconds),
+    alignment (primary pixel -> secondary pixel) and model (the network that decoded it). A bad setting or
+    capture is a ValueError before any work."""
     from twin.atomic import atomic_folder, remove_leftovers
     from twin.capture.session import CaptureSession
     from twin.lock import FolderLock

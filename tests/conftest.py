@@ -31,8 +31,8 @@ def reference_present() -> bool:
 # collection order (the Makefile turns off xdist's own reordering by test count, which queued these last), so the
 # short files fill both cores at the end instead of one long file running on alone.
 LONG_FILES = ("test_validate_suite.py", "test_scaleout.py", "test_hardware_capture.py", "test_bench_pipeline.py",
-              "test_capture.py", "test_alignment.py", "test_validate.py", "test_train.py", "test_design.py",
-              "test_reconstruct_resume.py")
+              "test_capture.py", "test_alignment.py", "test_readme_tour.py", "test_validate.py", "test_train.py",
+              "test_design.py", "test_reconstruct_resume.py")
 
 # The end-to-end files, marked `e2e`, which `make test-fast` leaves out: the long files above, and the calibration
 # procedures run on rendered photos, two-process training and the notebooks (each a minute or more on one core).

@@ -18,17 +18,22 @@ Sub-packages, one per physical thing (docs/architecture.md has the picture):
     twin.design     figures of merit of capture designs (noise, multiplexing gain, device costs, design files)
     twin.view       the pyvista view of the rig, cross-image plots, the rig as glTF
 Beside them: the twin's commands (cli.py), its self-checks (checks.py), benchmarks (bench.py), batches on Ray
-(batch.py), atomic file writes (atomic.py), the folders' locks (lock.py) and contained paths (paths.py).
+(batch.py), atomic file writes (atomic.py), the folders' locks (lock.py), contained paths (paths.py) and the
+packages' exports loaded on first use (lazy.py).
 """
 from __future__ import annotations
 
+from twin.lazy import lazy_exports as _lazy_exports
 from twin.rig.model import Rig, RigError  # noqa: F401
 
 __all__ = ["Rig", "RigError", "load_rig", "save_rig", "lumitexels", "measurements"]
 
 
 def load_rig(name_or_dir) -> Rig:
-    """A built-in rig by name ("paper", "mini") or a rig folder (twin.rig.format)."""
+    """The Rig of a built-in rig by name ("paper", "mini"; one shared instance each) or of a rig folder (a path,
+    twin.rig.format: lengths in mm, or converted to mm from the folder's declared `length_unit`). The rig's arrays
+    are in the world frame of twin.rig.units: LED positions (L, 3) mm, unit normals (L, 3), cameras' K (3, 3) in
+    pixels. A RigError says why a folder cannot be read."""
     from pathlib import Path
 
     from twin.rig.builtin import BUILTIN
@@ -57,16 +62,4 @@ def _builtin(name: str) -> Rig:
 # the public functions that live in heavier modules, loaded on first use (the forward model imports Warp): the
 # functions themselves, with their signatures and docstrings (units, shapes), not wrappers
 _LAZY = {"lumitexels": "twin.optics.forward", "measurements": "twin.optics.forward", "save_rig": "twin.rig.format"}
-
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        import importlib
-
-        value = globals()[name] = getattr(importlib.import_module(_LAZY[name]), name)  # later lookups: a plain one
-        return value
-    raise AttributeError(f"module 'twin' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = _lazy_exports(__name__, _LAZY)

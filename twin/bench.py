@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.capture.plan import DEFAULT_FRAMES
+from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED
 
 
 def random_points(P: int, seed: int = 0, half_size: float = 75.0, plane_z: float = -122.0):
@@ -361,7 +361,7 @@ CAPTURE_RENDER_RTOL = 1e-5  # the device render vs the float32 fused kernel: flo
 CAPTURE_RENDER_ATOL = 1e-6  # of the image's largest value
 
 
-def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, seed=0, scale=1.0,
+def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=1024, seed=DEFAULT_SEED, scale=1.0,
                   check_rows=8, output=None, frames=DEFAULT_FRAMES):
     """Seconds for the whole capture plan's simulation on `device` (every photo of both views; no
     extrapolation), by stage, with the production code (twin.capture.runner.photos): pixel tracing, the

@@ -72,36 +72,55 @@ def cmd_rig_export(args) -> int:
     return 0
 
 
-def load_led_values(path: str, rig, index: int = 0) -> tuple[np.ndarray, str]:
-    """A per-LED vector from a .npy file ((L,) or (L, 3), never unpickled) or one frame of a pattern file, and what it
-    is (the file, and the frame's index and name)."""
+def load_led_frames(path: str, rig) -> tuple[np.ndarray, list[str] | None]:
+    """Per-LED values from a .npy file ((L,) or (L, 3), never unpickled; names None) or every frame of a pattern file
+    ((N, L, 3) drive weights and the frames' names)."""
     p = Path(path)
     if p.suffix == ".npy":
         try:
             v = np.load(p, allow_pickle=False)
         except (ValueError, OSError) as e:
             raise ValueError(f"{p}: not a readable .npy array ({e})") from None
-        what = p.name
-    else:
-        from twin.capture.patterns import load_patterns
+        if v.ndim not in (1, 2) or v.shape[0] != rig.num_leds or (v.ndim == 2 and v.shape[1] != 3):
+            raise ValueError(f"{p}: expected ({rig.num_leds},) or ({rig.num_leds}, 3) values, got {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{p}: values contain NaN or Inf")
+        return v, None
+    from twin.capture.patterns import load_patterns
 
-        ps = load_patterns(p)
-        ps.check_rig(rig)
-        if not 0 <= index < ps.num_patterns:
-            raise ValueError(f"{p}: frame {index} out of range 0..{ps.num_patterns - 1}")
-        v = ps.weights[index]
-        what = f"{p.name}, frame {index}: {ps.names[index]}"
-    if v.shape[0] != rig.num_leds or v.ndim not in (1, 2):
-        raise ValueError(f"{p}: expected ({rig.num_leds},) or ({rig.num_leds}, 3) values, got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError(f"{p}: values contain NaN or Inf")
-    return v, what
+    ps = load_patterns(p)
+    ps.check_rig(rig)
+    return ps.weights, list(ps.names)
+
+
+def load_led_values(path: str, rig, index: int = 0) -> tuple[np.ndarray, str]:
+    """A per-LED vector from a .npy file or one frame of a pattern file (load_led_frames), and what it is (the file,
+    and the frame's index and name)."""
+    v, names = load_led_frames(path, rig)
+    if names is None:
+        return v, Path(path).name
+    if not 0 <= index < len(names):
+        raise ValueError(f"{path}: frame {index} out of range 0..{len(names) - 1}")
+    return v[index], f"{Path(path).name}, frame {index}: {names[index]}"
 
 
 def cmd_show_rig(args) -> int:
+    rig = _rig_arg(args.rig)
+    if args.html is not None:
+        from twin.view.rig_page import write_rig_page
+
+        if Path(args.html).exists() and not args.force:
+            raise ValueError(f"--html {args.html}: the file exists; --force replaces it")
+        values, names = load_led_frames(args.values, rig) if args.values else (None, None)
+        start = args.index if names is not None else 0
+        if names is not None and not 0 <= start < len(names):
+            raise ValueError(f"{args.values}: frame {start} out of range 0..{len(names) - 1}")
+        out = write_rig_page(rig, args.html, values, names, title=Path(args.values).name if args.values else "",
+                             start=start)
+        print(f"wrote {out}")
+        return 0
     from twin.view.rig_view import show_rig
 
-    rig = _rig_arg(args.rig)
     values, what = load_led_values(args.values, rig, args.index) if args.values else (None, "")
     out = show_rig(rig, values=values, output=args.output, window_size=tuple(args.size), title=what)
     if out is not None:
@@ -272,13 +291,17 @@ def register(sub) -> None:
     s.set_defaults(func=cmd_rig_export)
 
     show = sub.add_parser("show", help=COMMANDS["show"]).add_subparsers(dest="show_command", required=True)
-    s = show.add_parser("rig", help="3-D view of the rig (pyvista); PNG off-screen, a window otherwise")
+    s = show.add_parser("rig", help="3-D view of the rig: a PNG (pyvista, off-screen), a window, or an interactive web page (--html)")
     s.add_argument("--rig", default="paper", help=RIG_HELP)
     s.add_argument("--values", help="per-LED values to colour the LEDs: .npy (L,) or (L, 3), or a pattern file "
                    "(default: LEDs coloured by board)")
     s.add_argument("--index", type=int, default=0, help="frame of the pattern file given to --values, 0-based "
                    "(default: %(default)s)")
-    s.add_argument("-o", "--output", help="PNG path; without it an interactive window opens")
+    where = s.add_mutually_exclusive_group()
+    where.add_argument("-o", "--output", help="PNG path; without it (and without --html) an interactive window opens")
+    where.add_argument("--html", metavar="OUT.html", help="write a self-contained interactive page instead: turn it "
+                       "in any browser, no network; with a pattern file, a selector for every frame (--index first)")
+    s.add_argument("--force", action="store_true", help="replace an existing --html file")
     s.add_argument("--size", type=int, nargs=2, default=(1200, 900), metavar=("W", "H"),
                    help="image size in pixels (default: %(default)s)")
     s.set_defaults(func=cmd_show_rig)
@@ -350,7 +373,7 @@ def register(sub) -> None:
 
 def register_bench(bench) -> None:
     """Add the twin's benchmarks to the front's `bench` group."""
-    from twin.capture.plan import DEFAULT_FRAMES, FRAMES_HELP
+    from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
 
     s = bench.add_parser("lumitexel", help="LED-BRDF evaluations per second vs a plain torch baseline")
     s.add_argument("--rig", default="paper", help=RIG_HELP)
@@ -366,7 +389,7 @@ def register_bench(bench) -> None:
     s.add_argument("--device", default="cpu", help="Warp device: cpu, cuda (default: %(default)s)")
     s.add_argument("--sample", default="ramps", help="built-in sample (default: %(default)s)")
     add_sample_resolution(s, 1024, "texels per side of the sample's maps")
-    s.add_argument("--seed", type=int, default=0, help="the capture's seed (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="the capture's seed (default: %(default)s)")
     s.add_argument("--scale", type=float, default=1.0, help="resize the cameras by this factor, e.g. 0.5 for a "
                    "quick run (default: %(default)s)")
     s.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=FRAMES_HELP)
@@ -390,20 +413,22 @@ def register_bench(bench) -> None:
                    "the host waits, so that every delay ends in a timeout (default: %(default)s)")
     s.add_argument("--link", choices=("pty", "socket"), default="pty", help="the emulator's link (default: "
                    "%(default)s)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the patterns and the faults (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the patterns and the faults (default: "
+                   "%(default)s)")
     s.add_argument("-o", "--workdir", help="folder for the emulator logs (default: a new temporary folder)")
     s.set_defaults(func=cmd_bench)
     s = bench.add_parser("resume", help="a mini capture over the emulated devices SIGKILLed at random points and "
                          "resumed, checked against the simulator's (docs/reliability.md)")
     s.add_argument("--kills", type=int, default=20, help="kill points (default: %(default)s)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the kill points and faults (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the kill points and faults (default: "
+                   "%(default)s)")
     s.add_argument("-o", "--workdir", help="folder for the captures (default: a new temporary folder)")
     s.set_defaults(func=cmd_bench)
     s = bench.add_parser("camera-faults", help="a mini capture with camera faults injected, checked against the "
                          "simulator's (docs/reliability.md)")
     s.add_argument("--faults", default="failed=0.02,disconnect=0.005,stray=0.02", help="camera faults per trigger "
                    "(default: %(default)s)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the faults (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the faults (default: %(default)s)")
     s.add_argument("-o", "--workdir", help="folder for the captures (default: a new temporary folder)")
     s.set_defaults(func=cmd_bench)
     s = bench.add_parser("metering-faults", help="mini-rig photos with the LED controller reset before their "
@@ -411,7 +436,7 @@ def register_bench(bench) -> None:
     s.add_argument("--injections", type=int, default=100, help="photos the fault must hit (default: %(default)s)")
     s.add_argument("--rate", type=float, default=0.25, help="share of pattern latches after which the controller "
                    "browns out (default: %(default)s)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the faults (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the faults (default: %(default)s)")
     s.add_argument("--scale", type=float, default=1.0, help="resize the cameras by this factor, e.g. 0.5 for a "
                    "quick run (default: %(default)s)")
     s.add_argument("-o", "--workdir", help="folder for the emulator's log (default: a new temporary folder)")

@@ -26,13 +26,14 @@ import time
 from pathlib import Path
 
 from reconstruction.bench.common import device_name, log_tail, software
+from twin.capture.plan import DEFAULT_SEED
 
 # small sizes for a CPU (`--tiny`): the mini rig's real commands, a 16^2 sample and grid, one frame an exposure
 TINY = {"rig_name": "mini", "resolution": 16, "frames": 1}
 
 
-def bench_e2e(rig_name="paper", device="cpu", sample="ramps", resolution=None, seed=0, frames=None, network=None,
-              workdir=None, twice=False) -> dict:
+def bench_e2e(rig_name="paper", device="cpu", sample="ramps", resolution=None, seed=DEFAULT_SEED, frames=None,
+              network=None, workdir=None, twice=False) -> dict:
     """`workdir`: where the capture and reconstruction folders go (kept); None: a temporary folder, removed."""
     import tempfile
 

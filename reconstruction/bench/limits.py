@@ -29,6 +29,7 @@ import numpy as np
 from reconstruction.bench.common import (device_name, exact_lumitexels, exact_texels, finetune_config, positive_int,
                                          software, synchroniser)
 from reconstruction.evaluation.validation import exact_measurements
+from twin.capture.plan import DEFAULT_SEED
 
 ERRORS = ("normal_deg", "tangent_deg", "alpha_x_pct", "alpha_y_pct", "rho_d_pct", "rho_s_pct")
 STAGES = ("oracle", "decoded", "noisy_photos", "decoded_noisy")
@@ -41,7 +42,8 @@ TINY = {"rig_name": "mini", "samples": ("ramps",), "resolution": 8, "finetune_it
 
 
 def bench_fit_limits(rig_name="paper", device="cpu", samples=("ramps",), resolution=64, size_mm=100.0, noise=0.005,
-                     seed=7, frames=None, capture=None, finetune_iterations=None, fit_iterations=None) -> dict:
+                     seed=DEFAULT_SEED, frames=None, capture=None, finetune_iterations=None,
+                     fit_iterations=None) -> dict:
     """finetune_iterations: fine-tuning's three caps, fit_iterations: the fit's (None: FinetuneConfig's and
     FitConfig's, as `hemicube reconstruct` runs them); frames: the photos' frames an exposure the fit weighs them
     for (None: the capture plan's default)."""

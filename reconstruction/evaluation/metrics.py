@@ -213,8 +213,11 @@ def _floors(rho_floor) -> tuple[float, float]:
 def map_errors(truth: SVBRDFMaps, recon: SVBRDFMaps, mask=None, anisotropy_ratio: float = ANISOTROPY_RATIO,
                rho_floor=RHO_FLOOR) -> dict:
     """Errors of reconstructed maps against the truth ON THE SAME GRID (resample the truth first:
-    `resample_maps`). `mask` (H, W) bool selects the texels (default: all). `rho_floor`: one floor for
-    both albedos or a (ρd, ρs) pair. Returns (module docstring for the definitions):
+    `resample_maps`): two twin.materials.samples.SVBRDFMaps of H x W texels over the same size_mm. `mask` (H, W)
+    bool selects the texels (default: all). `anisotropy_ratio`: the tangent is scored where the true
+    alpha_x >= this times alpha_y. `rho_floor`: an albedo's relative error is |ρ - ρ_true| / max(ρ_true, floor),
+    one floor for both albedos or a (ρd, ρs) pair. Returns (module docstring for the definitions; angles in
+    degrees, `_pct` in %, log_alpha_x and log_alpha_y as |ln(α / α_true)|, transparency an absolute difference):
 
         {"texels": N, "normal_deg": S, "tangent_deg": S, "log_alpha_x": S, "log_alpha_y": S,
          "alpha_x_pct": S, "alpha_y_pct": S, "rho_d_pct": S + {"r": S, "g": S, "b": S},

@@ -94,7 +94,10 @@ def _sources(rig) -> list[np.ndarray]:
 
 
 def validation_set(rig) -> ValidationSet:
-    """The rig's validation set (module docstring)."""
+    """The rig's validation set (module docstring): views (VIEWS, 3) = (20, 3) and lights (LIGHTS, 3) = (28, 3), unit
+    directions in the rig's world frame within MAX_ZENITH_DEG = 60 degrees of +z; each view a virtual camera
+    with the primary camera's intrinsics (pixels) at its distance (mm) from the sample's centre, each light the
+    nearest 8 x 8 group of upper LEDs (or LED) of `rig` (a twin Rig)."""
     from twin.rig.camera import Camera
     from twin.rig.model import Rig
 
@@ -205,10 +208,13 @@ def _angles(d: np.ndarray) -> dict:
 def novel_view_scores(vset: ValidationSet, truth, recon, mask=None, device: str = "cpu",
                       images: bool = False) -> dict:
     """Every pair's scores of `recon` (maps on the reconstruction's grid) against `truth` (any map folder's maps, its
-    radiance box-filtered onto that grid: truth_images), and their summary: {"ssim": {"mean", "p5", "worst"}, "psnr_db": {"mean", "worst"},
-    "rel_rmse": {"mean", "worst"}, "worst": the pair of the lowest SSIM with its view and light, "pairs": every pair
-    (view and light directions, the light's source, the scores), "texels": how many are scored}. mask (H, W) bool:
-    the texels on the true sample (default all). images=True adds "worst_images": (truth, recon) of the worst pair."""
+    radiance box-filtered onto that grid: truth_images), and their summary: {"ssim": {"mean", "p5", "worst"},
+    "psnr_db": {"mean", "worst"}, "rel_rmse": {"mean", "worst"}, "worst": the pair of the lowest SSIM with its view
+    and light, "pairs": every pair (view and light directions, the light's source, the scores), "texels": how many
+    are scored}. SSIM in [0, 1], PSNR in dB, rel_rmse a fraction; "worst" gives the view's and the light's zenith_deg
+    and azimuth_deg (degrees). `vset`: validation_set(rig); truth, recon: twin.materials.samples.SVBRDFMaps, recon
+    square (H == W texels) over recon.size_mm mm. mask (H, W) bool: the texels on the true sample (default all).
+    images=True adds "worst_images": (truth, recon) of the worst pair, each (H, W, 3) linear radiance."""
     h, w = recon.shape
     if h != w:
         raise ValueError(f"the reconstruction's grid must be square, got {h} x {w}")

@@ -81,7 +81,17 @@ def map_parameters(maps) -> dict:
 
 
 def evaluate(capture, recon, rig, device="cpu") -> tuple[dict, list]:
-    """(metrics, panels) of a reconstruction of a twin capture (which carries its ground truth)."""
+    """(metrics, panels) of a reconstruction of a twin capture (which carries its ground truth): `recon` the
+    Reconstruction that reconstruction.reconstruct returned for the capture folder `capture`, `rig` its rig, `device`
+    where the forward model renders ("cpu", "cuda").
+
+    metrics   grid ({resolution: texels a side, size_mm, texel_mm}), holdout_line, timings_s (seconds a stage);
+              alignment (reconstruction.stages.alignment.alignment_error: median_px ... in secondary pixels);
+              maps (map_errors against the truth resampled onto the grid: degrees, %, absolute);
+              render ({latent, maps, truth_maps}: image_scores of each render of the held-out line against its
+              photo, SSIM in [0, 1] and PSNR in dB); novel (novel_view_scores)
+    panels    the report's pictures (reconstruction.evaluation.report) for write_report
+    Check the metrics against thresholds_for(rig.name) with reconstruction.evaluation.metrics.check."""
     from twin.capture.session import CaptureSession
 
     from reconstruction.stages.alignment import alignment_error

@@ -49,7 +49,11 @@ def pretrained_info(rig_name: str) -> dict | None:
 
 
 def load_pretrained(rig_name: str = "mini", device: str = "cpu") -> tuple[AcquisitionNet, dict]:
-    """The shipped network for a built-in rig, in eval mode, and its model.json."""
+    """The shipped network for a built-in rig ("mini", "paper"), in eval mode on `device` ("cpu", "cuda"), and its
+    model.json as a dict (how it was made: the TrainConfig, steps, the rig's digest, its held-out Eq. 3 loss and
+    scores). The network (reconstruction.network.architecture.AcquisitionNet, a torch module) maps lumitexels
+    (B, views, L) of the rig's L upper LEDs to measurements (B, views, K) under its K learned patterns and decodes
+    latents to log lumitexels (B, L). A rig with none shipped is a FileNotFoundError."""
     if pretrained_info(rig_name) is None:
         raise FileNotFoundError(f"no pretrained network ships for rig {rig_name!r} "
                                 f"(available: {sorted(p.name for p in PRETRAINED_DIR.iterdir() if p.is_dir())})")

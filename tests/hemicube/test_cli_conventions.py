@@ -68,6 +68,47 @@ def test_one_seed_default_for_every_capture():
     assert seeds == {"capture": DEFAULT_SEED, "validate": DEFAULT_SEED} and DEFAULTS["seed"] == DEFAULT_SEED == 1
 
 
+def _seed_options(parser, path=()):
+    """(command words, the --seed action, its parser) for every sub-command, through nested sub-parsers."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _seed_options(sub, (*path, name))
+        elif "--seed" in action.option_strings:
+            yield " ".join(path), action, parser
+
+
+def test_every_seed_option_has_the_one_default():
+    """Every command's --seed defaults to DEFAULT_SEED. None only where the seed is inherited, and then its help says
+    from what ("default: taken from ..."), or where the bench function's own default applies (cmd_bench_pipeline:
+    no option there has a parser default), which must be DEFAULT_SEED and named so in the help."""
+    import importlib
+    import inspect
+
+    from reconstruction.cli import BENCH_PIPELINE, cmd_bench_pipeline
+    from twin.capture.plan import DEFAULT_SEED
+
+    found, wrong = [], []
+    for cmd, action, parser in _seed_options(hemicube.cli.build_parser()):
+        found.append(cmd)
+        if action.default == DEFAULT_SEED:
+            continue
+        if action.default is None and parser.get_default("func") is cmd_bench_pipeline:
+            module, function, _ = BENCH_PIPELINE[cmd.split()[-1]]
+            fn = getattr(importlib.import_module(f"reconstruction.bench.{module}"), function)
+            if inspect.signature(fn).parameters["seed"].default == DEFAULT_SEED \
+                    and f"(default: {DEFAULT_SEED})" in action.help:
+                continue
+        elif action.default is None and "(default: taken from " in (action.help or ""):
+            continue
+        wrong.append((cmd, action.default, action.help))
+    assert not wrong, wrong
+    assert {"capture", "validate", "train", "calibrate", "controller serve", "bench resume", "bench e2e",
+            "design optimise"} <= set(found), found
+
+
 def test_help_imports_neither_torch_nor_warp():
     """`hemicube --help` parses with the front alone (hemicube.cli.overview_parser): a fresh process that prints it has
     imported neither torch nor Warp, and it lists every command the whole parser has, with the same help."""
@@ -201,6 +242,31 @@ def test_one_meaning_per_option_name_with_the_old_name_kept_a_version(capsys):
     assert parser.parse_args(["bench", "capture", "--sample-resolution", "64"]).resolution == 64
     assert parser.parse_args(["reconstruct", "c", "-o", "x", "--resolution", "12"]).resolution == 12
     assert capsys.readouterr().err == ""
+
+
+def test_capture_many_samples_file_says_sample_resolution_with_the_old_key_kept_a_version(tmp_path, capsys):
+    """SAMPLES.toml's `sample_resolution` is `capture --sample-resolution`; its old name `resolution` still reads
+    (top level or per sample) with one line on stderr; both names in one table are refused, naming both."""
+    from twin.capture.many import read_samples
+
+    def samples(text: str) -> list[dict]:
+        (tmp_path / "s.toml").write_text(text)
+        return read_samples(tmp_path / "s.toml")
+
+    body = '[[sample]]\nname = "ramps"\n[[sample]]\nname = "satin@5"\n'
+    new = samples("sample_resolution = 32\n" + body)
+    assert [s["sample_resolution"] for s in new] == [32, 32] and capsys.readouterr().err == ""
+    assert samples("resolution = 32\n" + body) == new
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'resolution' is deprecated: use 'sample_resolution'" in err[0], err
+    assert [s["sample_resolution"] for s in samples(body + "resolution = 16\n")] == [128, 16]
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    for text in ("resolution = 32\nsample_resolution = 32\n" + body,
+                 body + "resolution = 16\nsample_resolution = 16\n"):
+        with pytest.raises(ValueError, match="both 'resolution' and 'sample_resolution'"):
+            samples(text)
+    with pytest.raises(ValueError, match="sample_resolution must be a positive integer"):
+        samples("sample_resolution = 0\n" + body)
 
 
 def test_a_missing_device_is_one_line_in_a_fresh_process(tmp_path):

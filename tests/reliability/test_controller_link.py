@@ -21,6 +21,7 @@ from twin.capture.backends.led_emulator import add_arguments, spawn
 from twin.capture.backends.led_host import LedController
 from twin.capture.backends.led_protocol import REPLY, Cmd, State, crc32, decode_frame, encode_frame
 from twin.capture.plan import DeviceError
+from twin.exitcodes import EXIT_IO, EXIT_USAGE
 
 LEDS = 460
 TOKEN_ENV = "HEMICUBE_LED_TOKEN"
@@ -60,14 +61,14 @@ def _command(sock, cmd: int, seq: int) -> State:
     return State.unpack(reply.payload)
 
 
-def _serve_error(*argv, token: str | None = None) -> str:
-    """Start `serve` expecting it to stop at once; the one line it wrote to stderr."""
+def _serve_error(*argv, token: str | None = None, code: int = EXIT_USAGE) -> str:
+    """Start `serve` expecting it to stop at once with exit code `code`; the one line it wrote to stderr."""
     env = {**os.environ, **({TOKEN_ENV: token} if token else {})}
     try:
         done = subprocess.run(EMULATOR + [str(a) for a in argv], capture_output=True, text=True, timeout=10, env=env)
     except subprocess.TimeoutExpired:
         pytest.fail(f"serve {argv} kept serving instead of refusing")
-    assert (done.returncode, done.stdout) == (2, ""), done.stdout + done.stderr
+    assert (done.returncode, done.stdout) == (code, ""), done.stdout + done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("led_emulator: error: "), done.stderr
     return lines[0]
@@ -177,12 +178,17 @@ def test_serve_errors_are_one_line(case, busy_port, tmp_path):
         "--idle-timeout 0": (["--link", "socket://127.0.0.1:0", "--idle-timeout", "0"], None,
                              "--idle-timeout must be a positive number of seconds"),
     }[case]
-    assert expected in _serve_error(*argv, token=token)
+    # the system's refusal of the log's write is exit 3 (twin.exitcodes); a path that is no file is bad input, 2
+    code = EXIT_IO if case == "--log at a read-only place" else EXIT_USAGE
+    assert expected in _serve_error(*argv, token=token, code=code)
 
 
 def test_serve_errors_through_the_cli(cli):
     assert cli("controller", "serve", "--leds", LEDS, "--link", "socket://127.0.0.1:99999") == (
         2, ["hemicube: error: --link socket://127.0.0.1:99999: the port must be 0..65535 (0: any free port)"])
+    assert cli("controller", "serve", "--leds", LEDS, "--link", "socket://127.0.0.1:0", "--log",
+               "/proc/sys/kernel/ostype") == (EXIT_IO, ["hemicube: error: --log /proc/sys/kernel/ostype: permission "
+                                                        "denied; choose a folder you may write to"])
 
 
 def test_the_capture_proves_it_holds_the_token(monkeypatch, cli, tmp_path):

@@ -203,8 +203,10 @@ def test_led_link_benchmark_runs(tmp_path):
     """`hemicube bench led-link`, in miniature: its own checks hold (docs/reliability.md has the real run)."""
     from twin.capture.reliability import bench_led_link
 
+    # seed 0, the draws this miniature was made with: its bit errors (5e-4 a byte, 50 times the real run's, about
+    # every other frame hit) leave an upload a few per cent chance of running out of retries, as seed 1's does
     res = bench_led_link(uploads=20, leds=LEDS, rate=0.05, flip=5e-4, kinds=("corrupt", "stuck"), link="socket",
-                         workdir=tmp_path)
+                         seed=0, workdir=tmp_path)
     assert res["all_good"] and len(res["runs"]) == 3
     assert all(r["faults_injected"] for r in res["runs"])
 

@@ -18,7 +18,7 @@ pytest.importorskip("ray")
 SAMPLES = """\
 rig = "mini"
 seed = 2
-resolution = 32
+sample_resolution = 32
 [[sample]]
 name = "ramps"
 [[sample]]
@@ -64,7 +64,7 @@ def test_capture_many_makes_verified_captures(batch):
     again = _hemicube(d, "capture-many", "samples.toml", "-o", "caps")
     assert "0 done, 2 skipped" in again.stdout
     # the same folder named for another capture (resolution 16): not skipped, and capture() refuses it
-    (d / "other.toml").write_text(SAMPLES.replace('name = "satin@5"', 'name = "satin@5"\nresolution = 16'))
+    (d / "other.toml").write_text(SAMPLES.replace('name = "satin@5"', 'name = "satin@5"\nsample_resolution = 16'))
     other = _hemicube(d, "capture-many", "other.toml", "-o", "caps", "--retries", "0", ok=(1,))
     o = _outcomes(d / "caps" / "batch.json")
     assert o["ramps_seed2"]["status"] == "skipped" and o["satin5"]["status"] == "failed"

@@ -5,8 +5,8 @@ retrying failures a bounded number of times.
 SAMPLES.toml: top-level keys are defaults for every sample; each [[sample]] names one capture:
 
     rig = "mini"                 # built-in rig or rig folder (default "mini")
-    seed = 1                     # the capture's seed (default 0, as `hemicube capture`)
-    resolution = 128             # the built-in samples' map resolution (default 128)
+    seed = 1                     # the capture's seed (default 1, as `hemicube capture`)
+    sample_resolution = 128      # the built-in samples' map resolution (default 128; `capture --sample-resolution`)
     patterns = "run/patterns.npz"  # learned patterns (a `hemicube train` run's); default: the rig's own
     [[sample]]
     name = "satin"               # built-in name, NAME@SEED, or a folder of OpenSVBRDF maps
@@ -20,9 +20,13 @@ SAMPLES.toml: top-level keys are defaults for every sample; each [[sample]] name
     OUT/batch.json  (twin.batch) one entry per sample: status, attempts, seconds, photos; rewritten as jobs end
 A capture is finished when its folder holds the capture the entry describes (the same manifest header) with
 every planned photo listed and every file verified; it is then skipped.
+
+The key `resolution`, sample_resolution's old name, is still read for one version, with one line on stderr: elsewhere
+--resolution is the texture grid (reconstruct, reconstruct-many), one name with two meanings.
 """
 from __future__ import annotations
 
+import sys
 import tomllib
 from pathlib import Path
 
@@ -32,8 +36,10 @@ from twin.outputs import Kind, claim_output
 from .plan import DEFAULT_SEED
 from .session import CaptureError, CaptureSession
 
-KEYS = {"name", "rig", "seed", "resolution", "patterns", "folder"}
-DEFAULTS = {"rig": "mini", "seed": DEFAULT_SEED, "resolution": 128, "patterns": None}
+KEYS = {"name", "rig", "seed", "sample_resolution", "patterns", "folder"}
+DEFAULTS = {"rig": "mini", "seed": DEFAULT_SEED, "sample_resolution": 128, "patterns": None}
+# old key -> its new name: read for one version, with one line on stderr
+DEPRECATED_KEYS = {"resolution": "sample_resolution"}
 # OUT, resumed (twin.outputs): its batch.json names the samples file (reconstruct-many's names its captures)
 CAPTURE_MANY_FOLDER = Kind("a capture-many folder", (RECORD_FILE,), field="samples")
 
@@ -43,6 +49,18 @@ def _folder_name(name: str, seed: int) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in f"{base}_seed{seed}")
 
 
+def _renamed(table: dict, where: str, old_used: set) -> dict:
+    """`table` with its deprecated keys under their new names (DEPRECATED_KEYS); both names at once are refused."""
+    out = dict(table)
+    for old, new in DEPRECATED_KEYS.items():
+        if old in out:
+            if new in out:
+                raise ValueError(f"{where}: both {old!r} and {new!r}; keep {new!r} ({old!r} is its deprecated name)")
+            out[new] = out.pop(old)
+            old_used.add(old)
+    return out
+
+
 def read_samples(path) -> list[dict]:
     """The samples of a SAMPLES.toml with the defaults applied (paths made absolute); one-line errors."""
     path = Path(path)
@@ -50,7 +68,8 @@ def read_samples(path) -> list[dict]:
         doc = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
         raise ValueError(f"{path}: not a readable samples file ({e})") from None
-    top = {k: v for k, v in doc.items() if k != "sample"}
+    old_used: set = set()
+    top = _renamed({k: v for k, v in doc.items() if k != "sample"}, f"{path}: top level", old_used)
     bad = sorted(set(top) - (KEYS - {"name", "folder"}))
     if bad:
         raise ValueError(f"{path}: unknown top-level key(s) {bad}; allowed: {sorted(DEFAULTS)} and [[sample]]")
@@ -62,13 +81,16 @@ def read_samples(path) -> list[dict]:
     for i, e in enumerate(entries):
         if not isinstance(e, dict) or not isinstance(e.get("name"), str) or not e["name"]:
             raise ValueError(f"{path}: [[sample]] {i + 1} needs a name")
+        e = _renamed(e, f"{path}: [[sample]] {i + 1} ({e['name']})", old_used)
         if set(e) - KEYS:
             raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): unknown key(s) {sorted(set(e) - KEYS)}")
         s = {**DEFAULTS, **top, **e}
         if not isinstance(s["seed"], int) or isinstance(s["seed"], bool) or s["seed"] < 0:
             raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): seed must be an integer >= 0")
-        if not isinstance(s["resolution"], int) or s["resolution"] < 1:
-            raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): resolution must be a positive integer")
+        r = s["sample_resolution"]
+        if not isinstance(r, int) or isinstance(r, bool) or r < 1:
+            raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): sample_resolution must be a positive "
+                             "integer")
         for k in ("name", "rig", "patterns"):  # a folder or file named relative to SAMPLES.toml
             v = s[k]
             if isinstance(v, str) and ("/" in v or k == "patterns") and not Path(v).is_absolute():
@@ -78,6 +100,9 @@ def read_samples(path) -> list[dict]:
             raise ValueError(f"{path}: [[sample]] {i + 1}: folder {s['folder']!r} is repeated or not a plain name")
         folders.add(s["folder"])
         out.append(s)
+    for old in sorted(old_used):  # after the checks: a file refused says only why
+        print(f"hemicube capture-many: {path}: key {old!r} is deprecated: use {DEPRECATED_KEYS[old]!r} (the sample's "
+              "maps; --resolution is the texture grid in reconstruct)", file=sys.stderr)
     return out
 
 
@@ -118,8 +143,9 @@ def capture_many(samples_toml, output, device: str = "cpu", options: BatchOption
     claim_output(out, CAPTURE_MANY_FOLDER, [("the samples file", samples_toml)] + [
         (f"the {what} of [[sample]] {i + 1}", s[k]) for i, s in enumerate(samples)
         for k, what in (("name", "maps"), ("rig", "rig folder"), ("patterns", "pattern file"))])
-    jobs = [Job(s["folder"], {"sample": s["name"], "rig": s["rig"], "seed": s["seed"], "resolution": s["resolution"],
-                              "patterns": s["patterns"], "output": str(out / s["folder"]), "device": device})
+    jobs = [Job(s["folder"], {"sample": s["name"], "rig": s["rig"], "seed": s["seed"],
+                              "resolution": s["sample_resolution"], "patterns": s["patterns"],
+                              "output": str(out / s["folder"]), "device": device})
             for s in samples]
 
     def finished(job: Job):

@@ -31,7 +31,7 @@ import numpy as np
 
 from twin import load_rig
 from twin.capture.backends.faults import FAULT_KINDS
-from twin.capture.plan import DeviceError
+from twin.capture.plan import DEFAULT_SEED, DeviceError
 
 SAMPLE, SEED, LEDS_MINI = "ramps", 1, 460
 CAPTURE_ARGS = ["capture", "--rig", "mini", "--sample", SAMPLE, "--seed", str(SEED), "--no-progress"]
@@ -95,7 +95,7 @@ def led_link_run(spec: str, uploads: int, leds: int, *, timeout_s: float, link: 
 
 def bench_led_link(uploads: int = 10_000, leds: int = 16_384, rate: float = 0.01, flip: float = 1e-5,
                    kinds=tuple(FAULT_KINDS), timeout_s: float = 0.03, delay_s: float = 0.06, link: str = "pty",
-                   seed: int = 0, workdir=None) -> dict:
+                   seed: int = DEFAULT_SEED, workdir=None) -> dict:
     workdir = Path(workdir or ".")
     workdir.mkdir(parents=True, exist_ok=True)
     specs = [f"{k}={rate},delay_s={delay_s}" for k in kinds] + ([f"flip={flip}"] if flip else [])
@@ -153,7 +153,7 @@ def _photos(out: Path) -> int:
         return 0
 
 
-def bench_resume(kills: int = 20, seed: int = 0, workdir=None) -> dict:
+def bench_resume(kills: int = 20, seed: int = DEFAULT_SEED, workdir=None) -> dict:
     """Kill points: `kills` photo counts drawn at random (seeded) over the plan; each run is SIGKILLed a random
     0-0.5 s after its manifest reaches the next count, or, when it already has, 0-15 s after it starts (in
     start-up, rendering, uploading)."""
@@ -200,7 +200,8 @@ def bench_resume(kills: int = 20, seed: int = 0, workdir=None) -> dict:
     return result
 
 
-def bench_camera_faults(spec: str = "failed=0.02,disconnect=0.005,stray=0.02", seed: int = 0, workdir=None) -> dict:
+def bench_camera_faults(spec: str = "failed=0.02,disconnect=0.005,stray=0.02", seed: int = DEFAULT_SEED,
+                        workdir=None) -> dict:
     from twin.capture.backends.faults import CameraFaults
     from twin.capture.backends.led_emulator import spawn
     from twin.capture.runner import capture
@@ -230,7 +231,7 @@ def _new_events(log: Path, offset: int) -> tuple[list[dict], int]:
     return [json.loads(line) for line in whole.splitlines()], offset + len(whole)
 
 
-def bench_metering_faults(injections: int = 100, rate: float = 0.25, seed: int = 0, workdir=None,
+def bench_metering_faults(injections: int = 100, rate: float = 0.25, seed: int = DEFAULT_SEED, workdir=None,
                           scale: float = 1.0) -> dict:
     """A controller reset during the metering, injected until `injections` photos were hit: the emulated
     controller browns out right after latching a pattern (`brownout=RATE`, twin.capture.backends.faults), so

@@ -97,8 +97,9 @@ def measurements(rig, position, normal, tangent, rho_d, rho_s, alpha_x, alpha_y,
                  fresnel="schlick", eta=1.5, visibility=None, method="fused", dtype="float32",
                  fast=False, tensor_cores=False):
     """Pattern measurements B[p, k, c] = sum_l W[k, l, c] m[p, l, c] (paper Eq. 2) of P points: (P, K, 3), the
-    points as `lumitexels` takes them ((P, 3) mm positions, world frame). `patterns`: (K, L, 3)
-    or (K, L) relative drive, or a twin.capture.patterns.PatternSet. method="fused" never stores the lumitexels
+    points as `lumitexels` takes them ((P, 3) mm positions, world frame), in lumitexels' units times the drive.
+    `patterns`: (K, L, 3) or (K, L) relative drive (an LED's full drive is 1; a device's patterns lie in [0, 1]), or
+    a twin.capture.patterns.PatternSet. method="fused" never stores the lumitexels
     (a tiled kernel on CUDA, a loop kernel on CPU); "materialise" computes them (fast: as `lumitexels` does), then
     projects (`project`, cuBLAS, on CUDA, where tensor_cores=True allows TF32 within TF32_PROJECTION_RTOL; the
     projection kernel on the CPU). On a GPU materialise with fast=True and tensor_cores=True is the fastest

@@ -217,7 +217,17 @@ class BottomBoard:
 @dataclass(frozen=True)
 class Rig:
     """The whole device. Build it with the constructor (it validates), `twin.load_rig`, or the
-    builders in `twin.rig.builtin`."""
+    builders in `twin.rig.builtin`. Lengths in mm, in the right-handed world frame of twin.rig.units (+z out of
+    the sample).
+
+    leds        the L LEDs' arrays (LEDs): positions (L, 3) mm, unit normals (L, 3), intensity (L, 3), profile (L, 8)
+    boards      the LED boards (rows x cols grids), indexed by leds.board
+    cameras     name -> Camera: K (3, 3) and resolution in pixels, dist (5,), pose R (3, 3) | t (3,) mm (OpenCV)
+    sample      the sample plane: origin (mm), normal, x_axis, max_size (mm)
+    frame, bottom   the holder frame and the bottom board under the acrylic, or None
+    led_profile the meaning of leds.profile ("cosine" or "polynomial": twin.optics.emitter)
+    flat_fields name -> (H, W) float32 falloff beyond the camera's radial vignetting (a calibrated flat field)
+    """
 
     name: str
     leds: LEDs

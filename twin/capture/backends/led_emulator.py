@@ -36,7 +36,8 @@ from twin.capture.backends.led_protocol import (LIST_ENTRY, MAX_CHUNK, MAX_PAYLO
                                                 FrameError, FrameReader, SlotFlag, State, Status, cobs_decode,
                                                 crc32, encode_frame)
 from twin.capture.backends.faults import FAULT_KINDS, Faults, FaultSpec
-from twin.capture.plan import CaptureError
+from twin.capture.plan import DEFAULT_SEED, CaptureError
+from twin.exitcodes import EXIT_IO, EXIT_USAGE
 
 FIRMWARE_NAME = "hemicube-twin emulator"
 MAX_SLOTS = (MAX_PAYLOAD - STATE.size) // LIST_ENTRY.size  # what one LIST reply can describe (817)
@@ -241,8 +242,10 @@ class EventLog:
     def __init__(self, path):
         try:
             self._f = open(path, "a", buffering=1) if path else None
-        except OSError as e:
+        except (IsADirectoryError, NotADirectoryError, FileNotFoundError) as e:  # names no file one may make: input
             raise CaptureError(f"--log {path}: {e.strerror}") from None
+        except OSError as e:  # the system refuses the write (permissions, a read-only place): exit 3, not 2
+            raise OSError(e.errno, e.strerror, f"--log {path}") from None
 
     def write(self, event: dict) -> None:
         if self._f is not None:
@@ -253,11 +256,12 @@ class EventLog:
             self._f.close()
 
 
-def serve(link: str, num_leds: int, *, slots: int = 256, faults: str | None = None, seed: int = 0,
+def serve(link: str, num_leds: int, *, slots: int = 256, faults: str | None = None, seed: int = DEFAULT_SEED,
           log_path=None, allow_remote: bool = False, token_file=None, idle_timeout_s: float = IDLE_TIMEOUT_S,
           out=sys.stdout) -> None:
     """Serve until SIGTERM/SIGINT. Prints `serving URL (...)` on one line first; every error before that is a
-    CaptureError of one line, with nothing left listening or written."""
+    CaptureError of one line (bad input), or an OSError whose filename says what the system refused (the --log file),
+    with nothing left listening or written."""
     spec = FaultSpec.parse(faults)
     if not (math.isfinite(idle_timeout_s) and idle_timeout_s > 0):
         raise CaptureError(f"--idle-timeout must be a positive number of seconds, got {idle_timeout_s}")
@@ -332,7 +336,8 @@ def add_arguments(p) -> None:
     p.add_argument("--faults", help="faults to inject, e.g. corrupt=0.01,delay=0.01,flip=1e-5,seed=3 (kinds: "
                    + ", ".join(FAULT_KINDS) + "; brownout=P: a reset right after latching a pattern; "
                    "docs/led-protocol.md)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the controller's boot ids (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of the controller's boot ids "
+                   "(default: %(default)s)")
     p.add_argument("--log", help="append JSON lines here: faults injected, patterns displayed, resets, a summary "
                    "at exit")
 
@@ -348,7 +353,7 @@ def run(args) -> int:
 
 
 def spawn(num_leds: int, *, link: str = "socket://127.0.0.1:0", faults: str | None = None, slots: int = 256,
-          seed: int = 0, log=None, token: str | None = None, allow_remote: bool = False,
+          seed: int = DEFAULT_SEED, log=None, token: str | None = None, allow_remote: bool = False,
           idle_timeout_s: float | None = None, timeout_s: float = 60.0) -> tuple[subprocess.Popen, str]:
     """Start the emulator as its own process; returns it and the URL it serves (terminate it when done). A
     `token` goes to it in its environment, never on its command line, which every user of the machine can read."""
@@ -378,7 +383,11 @@ def main(argv=None) -> int:
         return run(args)
     except ValueError as e:
         print(f"led_emulator: error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    except OSError as e:  # the system's refusal (twin.exitcodes): one line, as hemicube's own
+        where = f"{os.fsdecode(e.filename)}: " if e.filename is not None else ""
+        print(f"led_emulator: error: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_IO
 
 
 if __name__ == "__main__":
