@@ -22,8 +22,12 @@ acquisition             the design's pattern photos (2K per camera, both cameras
                         The fixed part of the plan (64 lines, uniform, bottom) is the same for every design on a
                         rig and is not counted.
 LED duty                peak drive and exposure-weighted mean drive per LED over the pattern photos.
+verdict                 for every pair of designs, "real" or "not resolved" with every reason
+                        (twin.design.verdict): Welch's t-test on the seeds' test losses, and the bar every network
+                        must pass first (2x below the measurement-blind predictor, a flat held-out curve).
 
-Outputs in OUT: designs.csv, designs.json (every figure, the how table, the per-seed losses), heldout.png
+Outputs in OUT: designs.csv, designs.json (every figure, the how table, the per-seed losses and held-out curves,
+the verdicts), heldout.png
 (loss with the seeds' spread), snr.png (SNR distributions), and per design its pattern crosses
 (<name>/patterns.png) and training runs (<name>/seed<S>/).
 """
@@ -46,6 +50,10 @@ HOW = {
     "heldout_eq3_std": "sample standard deviation of that loss over the training seeds",
     "blind_eq3": "Eq. 3 of the best measurement-blind predictor on the same texels (the per-LED mean of "
                  "log(1 + m)): a network at this value ignores its measurements",
+    "blind_ratio_min": "blind_eq3 / the worst seed's test loss: how many times better than ignoring the measurements "
+                       "the weakest network is (a verdict needs >= 2)",
+    "tail_change_max": "the largest relative change of a seed's held-out loss over the last 20 % of its steps (the "
+                       "training run's own held-out set, CURVE_POINTS evaluations; a verdict needs < 1 %)",
     "snr_median": "median over patterns and reference texels of |B(W+) - B(W-)| / sigma, plan exposures",
     "snr_p10": "10th percentile of the same",
     "mux_gain_median": "median of sigma(one-LED-at-a-time sum) / sigma(multiplexed pair), same texels, each "
@@ -71,6 +79,9 @@ OPTIMISE_FOLDER = Kind("a design optimise folder", tuple(f"run/{m}" for m in RUN
 REFERENCE_TEXELS = 256
 TEST_TEXELS = 2048
 TEST_SEED = 20231101  # the test texels' seed: the same texels for every design of a comparison
+# held-out evaluations a training run makes: every tenth of its steps, so that one falls at 80 % of them, where the
+# verdict's flatness over the last 20 % starts (twin.design.verdict)
+CURVE_POINTS = 10
 
 
 def train_config(design, out: Path, seed: int, device: str = "cpu", steps: int | None = None):
@@ -100,52 +111,81 @@ def train_config(design, out: Path, seed: int, device: str = "cpu", steps: int |
                        dropout=tr.dropout, patterns_per_view=design.count, patterns_file=pfile,
                        leds_off=tuple(int(i) for i in np.flatnonzero(~design.led_on[upper])),
                        sampling=SamplingConfig(materials=tr.materials(tr.distribution)),
-                       eval_every=max(1, steps), checkpoint_every=max(1, steps))
+                       eval_every=max(1, steps // CURVE_POINTS), checkpoint_every=max(1, steps))
 
 
-def _train_runs(design, out: Path, device: str, progress: bool) -> tuple[list[float], float, object]:
-    """Train one network per seed (resumable: a finished run is read back), score each on the test texels;
-    the measurement-blind predictor's loss on them; the first seed's model."""
+def _train_runs(design, out: Path, device: str, progress: bool) -> tuple[list[float], list, float, object]:
+    """Train one network per seed (resumable: a finished run is read back), score each on the test texels; each
+    run's held-out curve ([step, Eq. 3] at CURVE_POINTS evaluations); the measurement-blind predictor's loss on the
+    test texels; the first seed's model."""
     from reconstruction.network.data import SamplingConfig, heldout_set
-    from reconstruction.network.train import blind_loss, heldout_losses, load_run_model, train
+    from reconstruction.network.train import blind_loss, heldout_losses, load_run_model, read_metrics, train
 
     tr = design.training
     test = heldout_set(design.rig, SamplingConfig(materials=tr.materials(tr.test_distribution, test=True)),
                        TEST_TEXELS, TEST_SEED, device)
-    losses, first = [], None
+    losses, curves, first = [], [], None
     for seed in tr.seeds:
         run = out / f"seed{seed}"
         train(train_config(design, out, seed, device), run, progress=False)  # resumes a finished run at once
         model = load_run_model(run, device)
         losses.append(float(heldout_losses(model, test).mean()))
+        curves.append([[r["step"], r["heldout_loss"]] for r in read_metrics(run / "metrics.jsonl")])
         if progress:
             print(f"design {design.name}: seed {seed}: test Eq. 3 {losses[-1]:.4g}", file=sys.stderr)
         if first is None:
             first = model
-    return losses, blind_loss(test["target"]), first
+    return losses, curves, blind_loss(test["target"]), first
 
 
-def _train_one(config, run: Path) -> None:
-    """One training run (a worker process of `evaluate`'s --jobs)."""
+def _train_one(config, run: Path) -> dict:
+    """One training run (a worker process of `evaluate`'s --jobs); which process and device trained it."""
+    import os
+
     from reconstruction.network.train import train
 
     train(config, run, progress=False)
+    return {"process": os.getpid(), "device": config.device,
+            "visible_gpus": os.environ.get("CUDA_VISIBLE_DEVICES", "")}
 
 
-def _train_parallel(designs, out: Path, device: str, jobs: int, progress: bool) -> None:
+def _take_gpu(slots) -> None:
+    """A --jobs worker's start: it takes the next GPU ordinal from `slots` and sees only that GPU, so that each
+    worker trains on its own GPU (round robin where there are more workers than GPUs)."""
+    import os
+
+    os.environ["CUDA_VISIBLE_DEVICES"] = str(slots.get())
+
+
+def _train_parallel(designs, out: Path, device: str, jobs: int, progress: bool) -> dict:
     """Train every (design, seed) run in `jobs` processes (spawned: each starts its own Warp and torch), so that
-    the scoring after finds them finished. The rig folders and fixed pattern files are written here first."""
+    the scoring after finds them finished. With a CUDA device each worker gets a GPU of its own (`_take_gpu`), the
+    GPUs taken in turn. The rig folders and fixed pattern files are written here first. Returns, per run ("design
+    seed S"), the process and device that trained it."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
+    ctx = multiprocessing.get_context("spawn")
+    init, initargs = None, ()
+    if device.startswith("cuda"):
+        import torch
+
+        gpus = max(1, torch.cuda.device_count()) if device == "cuda" else 1
+        ordinals = [k % gpus for k in range(jobs)] if device == "cuda" else [int(device.split(":")[1])] * jobs
+        slots = ctx.Queue()
+        for k in ordinals:
+            slots.put(k)
+        init, initargs, device = _take_gpu, (slots,), "cuda"  # each worker's only GPU is its cuda:0
     tasks = [(train_config(d, out / d.name, s, device), out / d.name / f"seed{s}", f"{d.name} seed {s}")
              for d in designs for s in d.training.seeds]
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+    done = {}
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=init, initargs=initargs) as pool:
         running = {pool.submit(_train_one, cfg, run): what for cfg, run, what in tasks}
         for f in as_completed(running):
-            f.result()  # a failed run fails the comparison
+            done[running[f]] = f.result()  # a failed run fails the comparison
             if progress:
-                print(f"trained {running[f]}", file=sys.stderr)
+                print(f"trained {running[f]} (process {done[running[f]]['process']})", file=sys.stderr)
+    return dict(sorted(done.items()))
 
 
 def optimise(path: str, output, device: str = "cpu", steps: int | None = None, seed: int | None = None,
@@ -213,7 +253,7 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
 
     out.mkdir(parents=True, exist_ok=True)
     rig = design.rig
-    losses, blind, model = _train_runs(design, out, device, progress)
+    losses, curves, blind, model = _train_runs(design, out, device, progress)
     patterns = export_patterns(model, rig, note=f"design {design.name}")  # 2K frames (+, -), all rig LEDs
     save_pattern_image(patterns, rig, out / "patterns.png")
     signed = signed_weights(patterns)  # (K, L)
@@ -251,7 +291,8 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
         "test_on": design.training.test_distribution, "steps": design.training.steps, "seeds": len(losses),
         "heldout_eq3": float(np.mean(losses)),
         "heldout_eq3_std": float(np.std(losses, ddof=1)) if len(losses) > 1 else float("nan"),
-        "blind_eq3": blind,
+        "blind_eq3": blind, "blind_ratio_min": float(blind / max(losses)),
+        "tail_change_max": _tail_change_max(curves),
         "snr_median": float(np.median(snr[finite])) if finite.any() else float("nan"),
         "snr_p10": float(np.percentile(snr[finite], 10)) if finite.any() else float("nan"),
         "mux_gain_median": float(np.nanmedian(gain)), "olat_capture_s": olat_s,
@@ -263,8 +304,18 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
     if maps:
         row |= _map_errors(design, out / f"seed{design.training.seeds[0]}", patterns, maps, out, device, progress,
                            maps_resolution)
-    (out / "figures.json").write_text(json.dumps({**row, "heldout_eq3_per_seed": losses}, indent=1))
-    return {**row, "heldout_eq3_per_seed": losses, "_snr": snr[finite]}
+    per_seed = {"heldout_eq3_per_seed": losses, "heldout_curve_per_seed": curves}
+    (out / "figures.json").write_text(json.dumps({**row, **per_seed}, indent=1))
+    return {**row, **per_seed, "_snr": snr[finite]}
+
+
+def _tail_change_max(curves) -> float:
+    """The largest relative change of a seed's held-out curve over its last steps (twin.design.verdict.tail_change);
+    NaN where a curve is too coarse to tell."""
+    from twin.design.verdict import tail_change
+
+    changes = [tail_change(c) for c in curves]
+    return float("nan") if not changes or any(c is None for c in changes) else float(max(changes))
 
 
 def _plots(rows: list[dict], out: Path) -> None:
@@ -299,7 +350,8 @@ def _plots(rows: list[dict], out: Path) -> None:
     plt.close(fig)
 
 
-COLUMNS = ("design", "rig", "family", "patterns", "leds_on", "train_on", "test_on", "steps", "seeds", "heldout_eq3", "heldout_eq3_std", "blind_eq3",
+COLUMNS = ("design", "rig", "family", "patterns", "leds_on", "train_on", "test_on", "steps", "seeds", "heldout_eq3",
+           "heldout_eq3_std", "blind_eq3", "blind_ratio_min", "tail_change_max",
            "snr_median", "snr_p10", "mux_gain_median", "olat_capture_s", "saturated_patterns", "acquisition_s", "upload_s",
            "capture_s", "within_budget", "duty_peak", "duty_mean_max")
 
@@ -311,6 +363,7 @@ def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = Fals
     `maps_resolution`^2 texture grid (None: the pipeline's)."""
     from twin.atomic import write_bytes_atomic
     from twin.design.design_file import load_design
+    from twin.design.verdict import compare_all
     from twin.materials.samples import load_sample
 
     designs = [load_design(p) for p in paths]
@@ -327,8 +380,7 @@ def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = Fals
     out = Path(output)
     claim_output(out, EVALUATE_FOLDER, [("the design file", p) for p in paths] + [("the maps of sample " + str(m), m)
                                                                                  for m in maps])
-    if jobs > 1:
-        _train_parallel(designs, out, device, jobs, progress)
+    trained_by = _train_parallel(designs, out, device, jobs, progress) if jobs > 1 else {}
     rows = [evaluate_design(d, out / d.name, device, progress, maps, maps_resolution) for d in designs]
     for key, what in (("steps", "step budgets"), ("test_on", "test distributions")):
         seen = sorted({str(r[key]) for r in rows})
@@ -338,21 +390,28 @@ def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = Fals
     _plots(rows, out)
     columns = COLUMNS + (tuple(MAP_METRICS) + ("maps_goals_missed",) if maps else ())
     table = [{k: r[k] for k in columns} for r in rows]
-    extra = ("heldout_eq3_per_seed",) + (("maps_per_sample",) if maps else ())
+    extra = ("heldout_eq3_per_seed", "heldout_curve_per_seed") + (("maps_per_sample",) if maps else ())
+    verdicts = compare_all(rows)
     write_bytes_atomic(out / "designs.json", json.dumps(
-        {"designs": [{**t, **{k: r[k] for k in extra}} for t, r in zip(table, rows)], "how": HOW}, indent=1).encode())
+        {"designs": [{**t, **{k: r[k] for k in extra}} for t, r in zip(table, rows)], "verdicts": verdicts,
+         "how": HOW, **({"trained_by": trained_by} if trained_by else {})}, indent=1).encode())
     with open(out / "designs.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=columns)
         w.writeheader()
         w.writerows(table)
     if as_json:
-        print(json.dumps({"designs": table, "how": HOW}, indent=1))
+        print(json.dumps({"designs": table, "verdicts": verdicts, "how": HOW}, indent=1))
     else:
         fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
         widths = [max(len(c), *(len(fmt(t[c])) for t in table)) for c in columns]
         print("  ".join(c.ljust(w) for c, w in zip(columns, widths)))
         for t in table:
             print("  ".join(fmt(t[c]).ljust(w) for c, w in zip(columns, widths)))
+        if verdicts:
+            print("\nverdicts (real: p < 0.05 over >= 3 seeds, every network 2x below the blind predictor and "
+                  "its held-out curve flat; twin/design/verdict.py):")
+            for v in verdicts:
+                print(f"  {v['text']}")
         print(f"\nhow each figure was computed: {out / 'designs.json'} ('how'); plots: {out}/heldout.png, snr.png")
     return 0
 

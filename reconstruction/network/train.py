@@ -70,7 +70,7 @@ from reconstruction.network.distributed import Dist, any_rank, all_sum, barrier,
 from reconstruction.network.architecture import AcquisitionNet, NetworkConfig, albedo_swap_loss, lumitexel_loss
 
 __all__ = ["TrainConfig", "TrainError", "train", "is_pair_step", "export_patterns", "load_checkpoint",
-           "CHECKPOINT_SHARD_BYTES", "CHECKPOINT_JSON", "heldout_losses", "blind_loss"]
+           "CHECKPOINT_SHARD_BYTES", "CHECKPOINT_JSON", "heldout_losses", "blind_loss", "read_metrics"]
 
 _SHARD_PREFIX, _LEGACY_TENSORS = "checkpoint-", "checkpoint.safetensors"  # a shard's name; version 1's one file
 # tensor bytes per shard file: 15 MiB, so that a file with its safetensors header stays under 16 MiB (module docstring)
@@ -374,7 +374,8 @@ def export_patterns(model: AcquisitionNet, rig, note: str = ""):
     return PatternSet(full, tuple(model.patterns.export_names()), rig.name, note)
 
 
-def _read_metrics(path: Path, max_step: int | None = None) -> list[dict]:
+def read_metrics(path: Path, max_step: int | None = None) -> list[dict]:
+    """The rows of a run's metrics.jsonl (one an evaluation), up to `max_step`; a line cut short by a kill is skipped."""
     rows = []
     if path.is_file():
         for line in path.read_text().splitlines():
@@ -495,7 +496,7 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
             _resume_rng(meta, ctx, config.seed)
             start, wall_before = int(meta["step"]), float(meta.get("wall_s", 0.0))
             if ctx.is_main:  # drop evaluations written after the checkpoint (a killed run): they are redone
-                kept = _read_metrics(mpath, max_step=start)
+                kept = read_metrics(mpath, max_step=start)
                 write_bytes_atomic(mpath, "".join(json.dumps(r) + "\n" for r in kept).encode())
         elif ctx.is_main and mpath.exists():
             mpath.unlink()
@@ -587,7 +588,7 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
         note = (f"learned by reconstruction.network.train: rig {rig.name}, step {end}, seed {config.seed}, "
                 f"held-out loss (Eq. 3) {heldout:.6g}")
         save_patterns(export_patterns(model, rig, note), run_dir / "patterns.npz")
-        rows = _read_metrics(mpath)
+        rows = read_metrics(mpath)
         _plot_loss(rows, run_dir / "loss.png")
         summary = {"final_heldout_loss": heldout, "steps": end, "steps_this_invocation": ran,
                    "target_steps": config.steps, "stopped_on_time_limit": stopped, "time_limit_s": time_limit,

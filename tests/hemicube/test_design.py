@@ -183,6 +183,15 @@ def test_design_evaluate_two_designs(tmp_path, capsys):
         assert 0 < row["duty_mean_max"] <= row["duty_peak"] <= 1
     # Hadamard frames drive every LED at full level: peak duty 1
     assert res["designs"][1]["duty_peak"] == 1.0
+    # the two worker processes shared the six runs
+    assert set(res["trained_by"]) == {f"{d} seed {s}" for d in ("learned-4", "hadamard-4") for s in (0, 1, 2)}
+    assert len({r["process"] for r in res["trained_by"].values()}) == 2
+    # every seed's held-out curve recorded (at the start and at every tenth of the steps, here every step), and a
+    # verdict on the pair that an 8-step budget cannot make "real"
+    for row in res["designs"]:
+        assert [s for s, _ in row["heldout_curve_per_seed"][0]] == list(range(9))
+    (verdict,) = res["verdicts"]
+    assert verdict["verdict"] == "not resolved" and verdict["why"] and verdict["text"] in printed
     rows = list(csv.DictReader(open(out / "designs.csv")))
     assert [r["design"] for r in rows] == ["learned-4", "hadamard-4"]
     for f in ("heldout.png", "snr.png", "learned-4/patterns.png", "hadamard-4/patterns.png"):
