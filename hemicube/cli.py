@@ -65,15 +65,46 @@ def overview_parser() -> argparse.ArgumentParser:
     return p
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The whole command line: every command with its options (each package's register)."""
+def owner(command: str | None) -> tuple[str, ...]:
+    """The packages whose register() a command needs: the one whose COMMANDS names it (none for this module's own
+    `validate`; twin's and reconstruction's benches for `bench`), or every package for None or a name no package
+    has (so that argparse's error lists every command)."""
     import importlib
 
-    from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
-
-    p, sub = _front()
+    if command == "validate":
+        return ()
+    if command == "bench":
+        return ("twin.cli", "reconstruction.cli")
     for m in PACKAGES:
-        importlib.import_module(m).register(sub)
+        if command in importlib.import_module(m).COMMANDS:
+            return (m,)
+    return PACKAGES
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The command line with every command's options (each package's register), or with those of `command` alone
+    (owner): a command imports only the packages it belongs to, so `hemicube rig info` loads neither torch nor Warp
+    where `hemicube reconstruct` loads both."""
+    import importlib
+
+    packages = PACKAGES if command is None else owner(command)
+    everything = packages == PACKAGES
+    p, sub = _front()
+    if command != "bench":
+        for m in packages:
+            importlib.import_module(m).register(sub)
+    if everything or command == "validate":
+        _add_validate(sub)
+    if everything or command == "bench":
+        bench = sub.add_parser("bench", help=COMMANDS["bench"]).add_subparsers(dest="bench_command", required=True)
+        for m in ("twin.cli", "reconstruction.cli"):
+            importlib.import_module(m).register_bench(bench)
+    return p
+
+
+def _add_validate(sub) -> None:
+    """The main job's command and its options."""
+    from twin.capture.plan import DEFAULT_FRAMES, DEFAULT_SEED, FRAMES_HELP
 
     s = sub.add_parser("validate", help=COMMANDS["validate"])
     s.add_argument("--rig", default="mini", help="built-in rig (paper, mini) or rig folder (default: %(default)s)")
@@ -96,11 +127,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--anyway", action="store_true", help="on the CPU, run even a capture estimated to take "
                    "hours (the paper rig) instead of stopping with the estimate")
     s.set_defaults(func=cmd_validate)
-
-    bench = sub.add_parser("bench", help=COMMANDS["bench"]).add_subparsers(dest="bench_command", required=True)
-    for m in ("twin.cli", "reconstruction.cli"):
-        importlib.import_module(m).register_bench(bench)
-    return p
 
 
 # the way on from the operating system's refusals to write (the writers leave nothing half-written, twin.atomic; a
@@ -153,8 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     on stderr, no traceback. The commands print their results on stdout; option values are in the units their
     help states (mm, pixels, seconds)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    named = any(not a.startswith("-") for a in argv)  # a command: its options are needed, and the packages with them
-    args = (build_parser() if named else overview_parser()).parse_args(argv)  # bad usage: argparse's line, exit 2
+    command = next((a for a in argv if not a.startswith("-")), None)  # the front has no option that takes a value
+    # a command: its options are needed, and only the package that has them; none: the front's overview alone
+    args = (build_parser(command) if command else overview_parser()).parse_args(argv)  # bad usage: one line, exit 2
     try:
         # before any work: a device this machine lacks is one line; a command whose --device is another machine's
         # (the Ray batch commands': the cluster's, twin.batch) says so with device_here=False

@@ -188,17 +188,32 @@ def _train_parallel(designs, out: Path, device: str, jobs: int, progress: bool) 
     return dict(sorted(done.items()))
 
 
+def override_rig(rig):
+    """The rig that `--rig NAME|DIR` puts in place of every design file's `rig` (None: each file's own), loaded once
+    before any work; a rig that cannot be loaded is one line naming the option (a ValueError: exit 2)."""
+    if rig is None:
+        return None
+    import twin
+
+    try:
+        return twin.load_rig(rig)
+    except (ValueError, OSError) as e:  # twin.rig.model.RigError is a ValueError
+        raise ValueError(f"--rig: {e}") from None
+
+
 def optimise(path: str, output, device: str = "cpu", steps: int | None = None, seed: int | None = None,
-             progress: bool = True) -> int:
+             progress: bool = True, rig=None) -> int:
     """Train a design's patterns and network on its training distribution (`hemicube design optimise`): a
     resumable `hemicube train` run in OUTPUT/run whose patterns.npz goes to `hemicube capture --patterns` and
-    whose folder to `hemicube reconstruct --network`."""
+    whose folder to `hemicube reconstruct --network`. `rig` (a built-in rig's name or a rig folder) overrides the
+    design file's."""
     from reconstruction.network.train import train
     from twin.design.design_file import load_design
 
+    rig = override_rig(rig)
+    design = load_design(path, rig)
     out = Path(output)
     claim_output(out, OPTIMISE_FOLDER, [("the design file", path)])
-    design = load_design(path)
     cfg = train_config(design, out, design.training.seeds[0] if seed is None else int(seed), device, steps)
     m = train(cfg, out / "run", progress=progress)
     print(f"design {design.name}: {m['steps']} steps on {design.training.distribution!r}, held-out Eq. 3 "
@@ -258,16 +273,17 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
     save_pattern_image(patterns, rig, out / "patterns.png")
     signed = signed_weights(patterns)  # (K, L)
 
-    # reference texels: the first of the test texels (the materials the design is for), physical radiance per LED
+    # reference texels: the first of the test texels (the materials the design is for), physical radiance per LED;
+    # synthesised on the training device (a GPU machine may lack Warp's CPU compiler), scored on the CPU
     tr = design.training
     held = heldout_set(rig, SamplingConfig(materials=tr.materials(tr.test_distribution, test=True)), REFERENCE_TEXELS,
-                       TEST_SEED, "cpu")
+                       TEST_SEED, device)
     upper = np.flatnonzero(~np.asarray(rig.is_bottom))
     lit = np.flatnonzero((signed != 0).any(axis=0))
     exposures, olat, snr, gain, saturated = [], [], [], [], np.zeros(design.count, bool)
     for v, cam in enumerate(rig.cameras):
         m = np.zeros((REFERENCE_TEXELS, rig.num_leds))
-        m[:, upper] = held["views"][:, v].to(torch.float64).numpy() / LUMITEXEL_SCALE
+        m[:, upper] = held["views"][:, v].to("cpu", torch.float64).numpy() / LUMITEXEL_SCALE
         sensor = rig.camera(cam).sensor
         noise = measurement_noise(rig, signed, m, sensor)
         exposures.append(noise["exposures_s"])                      # (K, 2, raw frames: bracket x frames)
@@ -357,16 +373,19 @@ COLUMNS = ("design", "rig", "family", "patterns", "leds_on", "train_on", "test_o
 
 
 def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = False, progress: bool = True,
-             maps=(), jobs: int = 1, maps_resolution: int | None = None) -> int:
+             maps=(), jobs: int = 1, maps_resolution: int | None = None, rig=None) -> int:
     """Load every design (all checked before any work), score each, write the table and plots, print it. With
     jobs > 1 the training runs go first, `jobs` at a time in separate processes. `maps` are scored on a
-    `maps_resolution`^2 texture grid (None: the pipeline's)."""
+    `maps_resolution`^2 texture grid (None: the pipeline's). `rig` (a built-in rig's name or a rig folder) overrides
+    every design file's `rig`; each file's layout changes and camera moves apply on top of it, its name is kept,
+    and the table's `rig` column says which rig each design was scored on."""
     from twin.atomic import write_bytes_atomic
     from twin.design.design_file import load_design
     from twin.design.verdict import compare_all
     from twin.materials.samples import load_sample
 
-    designs = [load_design(p) for p in paths]
+    rig = override_rig(rig)
+    designs = [load_design(p, rig) for p in paths]
     for name in maps:
         load_sample(name, 16)  # a bad sample name fails before any training
     names = [d.name for d in designs]
@@ -443,8 +462,11 @@ def register(sub) -> None:
     e.add_argument("--jobs", type=int, default=1, help="training runs at a time, each in its own process (the "
                    "Warp CPU kernels and a small network's steps use one core each; on a GPU they overlap; "
                    "default: %(default)s)")
+    e.add_argument("--rig", default=None, metavar="NAME|DIR", help="score every design on this rig instead of the "
+                   "one its file names: a built-in rig (paper, mini) or a rig folder; each file's layout changes "
+                   "and camera moves still apply, and its name is kept (default: each file's rig)")
     e.set_defaults(func=lambda a: evaluate(a.designs, a.output, a.device, a.json, not a.no_progress, a.maps,
-                                           a.jobs, a.maps_resolution))
+                                           a.jobs, a.maps_resolution, a.rig))
     o = ds.add_parser("optimise", help="train a design's patterns and network on its training distribution "
                       "(uniform GGX, the material suite, or folders of maps): patterns to capture with, a network "
                       "to reconstruct with")
@@ -457,4 +479,7 @@ def register(sub) -> None:
                    "other commands' default)")
     o.add_argument("--device", default="cpu", help="torch device (default: %(default)s)")
     o.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
-    o.set_defaults(func=lambda a: optimise(a.design, a.output, a.device, a.steps, a.seed, not a.no_progress))
+    o.add_argument("--rig", default=None, metavar="NAME|DIR", help="train on this rig instead of the one the file "
+                   "names: a built-in rig (paper, mini) or a rig folder (default: the file's rig)")
+    o.set_defaults(func=lambda a: optimise(a.design, a.output, a.device, a.steps, a.seed, not a.no_progress,
+                                           a.rig))

@@ -581,7 +581,8 @@ def train(config: TrainConfig, run_dir, progress: bool = True, time_limit: float
                 heldout = _evaluate(model, held)
         loop_s = time.perf_counter() - t0
         ran = end - start
-        _save_checkpoint(run_dir, model, opt, end, config, digest, ctx, wall_before + loop_s)
+        if ran or ckpt is None:  # a run resumed at its end already has this checkpoint: do not write it again
+            _save_checkpoint(run_dir, model, opt, end, config, digest, ctx, wall_before + loop_s)
         if not ctx.is_main:
             return {}
 

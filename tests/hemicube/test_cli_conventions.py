@@ -124,6 +124,33 @@ def test_help_imports_neither_torch_nor_warp():
     assert commands(hemicube.cli.overview_parser()) == commands(hemicube.cli.build_parser())
 
 
+@pytest.mark.parametrize("argv", [["rig", "info", "mini"], ["samples", "list"], ["show", "rig", "--rig", "mini",
+                                                                              "--html", "rig.html"]])
+def test_commands_that_need_neither_import_neither_torch_nor_warp(argv, tmp_path):
+    """A command parses with its own package's options alone (hemicube.cli.owner): in a fresh process, the rig's,
+    the samples' and the page's commands run without importing torch or Warp."""
+    code = (f"import sys, hemicube.cli as c\nassert c.main({argv!r}) == 0\n"
+            "print(sorted(m for m in ('torch', 'warp') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0 and r.stdout.strip().splitlines()[-1] == "[]", r.stdout[-2000:] + r.stderr[-2000:]
+
+
+def test_each_command_parses_alike_with_its_own_package_or_all():
+    """The parser built for one command (owner) gives the same namespace as the whole parser, for a command of each
+    package, the front's own and the benches; an unknown name gets the whole parser, so its error lists every
+    command."""
+    cases = [["rig", "info", "mini"], ["reconstruct", "cap", "-o", "r"], ["calibrate", "cameras", "-o", "c"],
+             ["design", "evaluate", "a.toml", "-o", "o"], ["validate", "--sample", "paper"],
+             ["bench", "lumitexel", "--points", "4"], ["bench", "e2e", "--tiny"]]
+    whole = hemicube.cli.build_parser()
+    for argv in cases:
+        own = vars(hemicube.cli.build_parser(argv[0]).parse_args(argv))
+        full = vars(whole.parse_args(argv))
+        assert own.keys() == full.keys() and all(own[k] == full[k] for k in own if k != "func"), argv
+        assert getattr(own["func"], "__qualname__", None) == getattr(full["func"], "__qualname__", None), argv
+    assert hemicube.cli.owner("nosuch") == hemicube.cli.PACKAGES
+
+
 def test_junit_reads_back_with_a_junit_reader(tmp_path):
     """hemicube.junit's document, read by junitparser as a CI system reads it: a case per check and threshold, a
     missed one a failure with its message, a sample that did not finish an error."""

@@ -39,6 +39,31 @@ def test_shipped_designs_load():
     assert 0.15 < half.led_on.sum() / full.led_on.sum() < 0.35
 
 
+def test_rig_override(tmp_path, capsys):
+    """--rig puts one rig in place of every design file's (a built-in name or a rig folder): the file's name, layout
+    changes and patterns apply on top of it; a rig that cannot be loaded is one line before any work (exit 2). No
+    training: the paper rig's networks are for a GPU (docs/designer.md)."""
+    from hemicube.design import override_rig
+    from twin.rig.format import save_rig
+
+    paper = override_rig("paper")
+    d = load_design(DESIGNS / "s11.3-suite-10.toml", paper)  # a mini-rig file scored on the paper rig
+    assert (d.name, d.rig.name, d.count) == ("s11.3-suite-10", "paper", 10)
+    assert d.led_on.sum() == (~paper.is_bottom).sum() == 12288
+    half = load_design(DESIGNS / "learned-32-half-pitch.toml", "paper")  # the file's stride on the paper rig's boards
+    assert half.rig is paper and 0.15 < half.led_on.sum() / 12288 < 0.35
+    assert load_design(DESIGNS / "s11.3-paper-suite-32.toml", "mini").rig.name == "mini"  # and back
+    save_rig(twin.load_rig("mini"), tmp_path / "myrig")
+    assert load_design(DESIGNS / "s11.3-paper-suite-32.toml", override_rig(str(tmp_path / "myrig"))).rig.num_leds == \
+        twin.load_rig("mini").num_leds
+    for cmd in (["evaluate", str(DESIGNS / "learned-10.toml")], ["optimise", str(DESIGNS / "learned-10.toml")]):
+        out = tmp_path / f"out-{cmd[0]}"
+        assert hemicube.cli.main(["design", *cmd, "--rig", "nonesuch", "-o", str(out), "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == "hemicube: error: --rig: 'nonesuch' is neither a built-in rig (paper, mini) nor an existing folder"
+        assert not out.exists()
+
+
 def _bad_pattern_file(tmp_path):
     rig = twin.load_rig("mini")
     levels = np.zeros((4, rig.num_leds, 3), np.int16)

@@ -3,7 +3,8 @@
     format = "hemicube-design"
     version = 1
     name = "hadamard-32"           # the design's name in tables and plots (default: the file's stem)
-    rig = "mini"                   # a built-in rig or a rig folder (relative paths: from the design file)
+    rig = "mini"                   # a built-in rig or a rig folder (relative paths: from the design file);
+                                   # `hemicube design evaluate --rig` overrides it for every design
 
     [leds]                         # optional layout change: LEDs that are never driven
     off_boards = ["top A"]         # boards removed (names as in the rig)
@@ -253,10 +254,12 @@ def _distribution(v, key, src) -> str:
     raise _err(src, key, f"must be one of {DISTRIBUTIONS}, got {v!r}")
 
 
-def load_design(path: str | os.PathLike) -> Design:
-    """Read and check a design file (module docstring)."""
+def load_design(path: str | os.PathLike, rig=None) -> Design:
+    """Read and check a design file (module docstring). `rig` (a twin.rig.model.Rig, a built-in rig's name or a rig
+    folder, relative to the working directory) overrides the file's `rig`: the file's layout changes, camera moves
+    and patterns then apply to that rig, and the design keeps its name (`hemicube design evaluate --rig`)."""
     import twin
-    from twin.rig.model import RigError
+    from twin.rig.model import Rig, RigError
 
     src = Path(path)
     try:
@@ -279,11 +282,17 @@ def load_design(path: str | os.PathLike) -> Design:
     rig_name = d.get("rig")
     if not isinstance(rig_name, str):
         raise _err(src, "rig", f"must be a built-in rig name or a rig folder, got {rig_name!r}")
-    candidate = src.parent / rig_name
-    try:
-        rig = twin.load_rig(candidate if candidate.is_dir() else rig_name)
-    except (RigError, ValueError, OSError) as e:
-        raise _err(src, "rig", str(e)) from None
+    if rig is None:  # the file's own rig
+        candidate = src.parent / rig_name
+        try:
+            rig = twin.load_rig(candidate if candidate.is_dir() else rig_name)
+        except (RigError, ValueError, OSError) as e:
+            raise _err(src, "rig", str(e)) from None
+    elif not isinstance(rig, Rig):
+        try:
+            rig = twin.load_rig(rig)
+        except (RigError, ValueError, OSError) as e:
+            raise DesignError(f"--rig: {e}") from None
     led_on = _led_mask(rig, _table(d, "leds", src, ("off_boards", "stride", "off")), src)
     cams = d.get("cameras", {})
     if not isinstance(cams, dict):
