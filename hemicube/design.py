@@ -264,6 +264,7 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
     from twin.capture.plan import photo_exposures
     from twin.design.costs import led_duty, photo_seconds, upload_cost
     from twin.design.noise import measurement_noise, olat_functional_gain
+    from twin.design.verdict import tail_change_max
     from twin.view.cross_plot import save_pattern_image
 
     out.mkdir(parents=True, exist_ok=True)
@@ -308,7 +309,7 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
         "heldout_eq3": float(np.mean(losses)),
         "heldout_eq3_std": float(np.std(losses, ddof=1)) if len(losses) > 1 else float("nan"),
         "blind_eq3": blind, "blind_ratio_min": float(blind / max(losses)),
-        "tail_change_max": _tail_change_max(curves),
+        "tail_change_max": _nan_if_none(tail_change_max(curves)),
         "snr_median": float(np.median(snr[finite])) if finite.any() else float("nan"),
         "snr_p10": float(np.percentile(snr[finite], 10)) if finite.any() else float("nan"),
         "mux_gain_median": float(np.nanmedian(gain)), "olat_capture_s": olat_s,
@@ -325,13 +326,9 @@ def evaluate_design(design, out: Path, device: str = "cpu", progress: bool = Tru
     return {**row, **per_seed, "_snr": snr[finite]}
 
 
-def _tail_change_max(curves) -> float:
-    """The largest relative change of a seed's held-out curve over its last steps (twin.design.verdict.tail_change);
-    NaN where a curve is too coarse to tell."""
-    from twin.design.verdict import tail_change
-
-    changes = [tail_change(c) for c in curves]
-    return float("nan") if not changes or any(c is None for c in changes) else float(max(changes))
+def _nan_if_none(v) -> float:
+    """A figure the table prints: NaN where there is none (JSON's null)."""
+    return float("nan") if v is None else float(v)
 
 
 def _plots(rows: list[dict], out: Path) -> None:

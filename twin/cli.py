@@ -59,8 +59,7 @@ def cmd_rig_export(args) -> int:
     if args.gltf is not None:
         from twin.view.gltf import export_gltf
 
-        if Path(args.gltf).exists() and not args.force:
-            raise ValueError(f"--gltf {args.gltf}: the file exists; --force replaces it")
+        _refuse_existing("--gltf", args.gltf, args.force)
         rig = _rig_arg(args.rig)
         out = export_gltf(rig, args.gltf)
         print(f"wrote rig {rig.name!r} ({rig.num_leds} LEDs, {len(rig.cameras)} cameras) as glTF to {out}")
@@ -70,6 +69,19 @@ def cmd_rig_export(args) -> int:
     out = save_rig(rig, args.output, overwrite=replace)
     print(f"wrote rig {rig.name!r} ({rig.num_leds} LEDs) to {out}")
     return 0
+
+
+def _refuse_existing(option: str, path: str, force: bool) -> None:
+    """An output file given to `option` that exists is replaced only with --force."""
+    if Path(path).exists() and not force:
+        raise ValueError(f"{option} {path}: the file exists; --force replaces it")
+
+
+def _frame_index(path: str, index: int, count: int) -> int:
+    """`index`, checked against a pattern file's `count` frames."""
+    if not 0 <= index < count:
+        raise ValueError(f"{path}: frame {index} out of range 0..{count - 1}")
+    return index
 
 
 def load_led_frames(path: str, rig) -> tuple[np.ndarray, list[str] | None]:
@@ -99,8 +111,7 @@ def load_led_values(path: str, rig, index: int = 0) -> tuple[np.ndarray, str]:
     v, names = load_led_frames(path, rig)
     if names is None:
         return v, Path(path).name
-    if not 0 <= index < len(names):
-        raise ValueError(f"{path}: frame {index} out of range 0..{len(names) - 1}")
+    index = _frame_index(path, index, len(names))
     return v[index], f"{Path(path).name}, frame {index}: {names[index]}"
 
 
@@ -109,12 +120,9 @@ def cmd_show_rig(args) -> int:
     if args.html is not None:
         from twin.view.rig_page import write_rig_page
 
-        if Path(args.html).exists() and not args.force:
-            raise ValueError(f"--html {args.html}: the file exists; --force replaces it")
+        _refuse_existing("--html", args.html, args.force)
         values, names = load_led_frames(args.values, rig) if args.values else (None, None)
-        start = args.index if names is not None else 0
-        if names is not None and not 0 <= start < len(names):
-            raise ValueError(f"{args.values}: frame {start} out of range 0..{len(names) - 1}")
+        start = _frame_index(args.values, args.index, len(names)) if names is not None else 0
         out = write_rig_page(rig, args.html, values, names, title=Path(args.values).name if args.values else "",
                              start=start)
         print(f"wrote {out}")

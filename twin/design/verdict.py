@@ -61,6 +61,12 @@ def tail_change(curve) -> float | None:
     return abs(end - start[-1]) / abs(start[-1])
 
 
+def tail_change_max(curves) -> float | None:
+    """The largest tail_change of several seeds' curves; None when there are none or one is too coarse to tell."""
+    changes = [tail_change(c) for c in curves]
+    return None if not changes or any(c is None for c in changes) else max(changes)
+
+
 def network_bar(row: dict) -> list[str]:
     """Why a design's networks cannot be compared (empty when they can): too few seeds, a network within
     BLIND_RATIO of the blind predictor, a held-out curve not flat over its last FLAT_TAIL of steps."""
@@ -73,11 +79,11 @@ def network_bar(row: dict) -> list[str]:
         why.append(f"{name}'s worst network scores {worst:.4g}, not {BLIND_RATIO:g}x below the measurement-blind "
                    f"predictor's {blind:.4g} ({blind / worst:.2f}x): it has not learned to use its measurements")
     curves = row.get("heldout_curve_per_seed") or []
-    changes = [tail_change(c) for c in curves]
-    if len(curves) < len(losses) or any(c is None for c in changes):
+    change = tail_change_max(curves)
+    if len(curves) < len(losses) or change is None:
         why.append(f"{name}'s held-out curves are too coarse to tell whether training had flattened")
-    elif changes and max(changes) >= FLAT_CHANGE:
-        why.append(f"{name}'s held-out loss still moved {100 * max(changes):.1f} % over the last "
+    elif change >= FLAT_CHANGE:
+        why.append(f"{name}'s held-out loss still moved {100 * change:.1f} % over the last "
                    f"{100 * FLAT_TAIL:.0f} % of its steps (a flat curve moves < {100 * FLAT_CHANGE:g} %): train longer")
     return why
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.view.rig_view import (BOARD_COLOURS, CAMERA_COLOURS, DRIVE_BAR, board_rectangle, camera_frustum,
-                                default_view, face_centres, led_pitch)
+                                default_view, face_centres, led_colours, led_pitch)
 
 TEMPLATE = Path(__file__).with_name("rig_page.html")
 DATA_MARK = "/*RIG_DATA*/null"  # the template's placeholder for the scene's JSON
@@ -39,31 +39,21 @@ def page_frames(values, num_leds: int, names=None) -> list[dict]:
     from matplotlib import colormaps
 
     v = np.asarray(values, np.float64)
-    if v.ndim == 3 and v.shape[1:] == (num_leds, 3):
-        stack = list(v)
-    elif v.shape in ((num_leds,), (num_leds, 3)):
-        stack = [v]
-    else:
-        raise ValueError(f"values must have shape ({num_leds},), ({num_leds}, 3) or (N, {num_leds}, 3), "
-                         f"got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("values contain NaN or Inf")
+    stack = list(v) if v.ndim == 3 and v.shape[1:] == (num_leds, 3) else [v]
     names = list(names) if names is not None else [f"frame {k}" for k in range(len(stack))]
     frames = []
     for name, f in zip(names, stack):
-        if f.ndim == 1:
-            lo, hi = float(f.min()), float(f.max())
-            t = (f - lo) / (hi - lo) if hi > lo else np.zeros_like(f)
+        kind, colours = led_colours(f, num_leds)  # the PNG view's reading of a per-LED vector: one rule for both
+        if kind == "scalar":
+            lo, hi = float(colours.min()), float(colours.max())
             cmap = colormaps[SCALAR_MAP]
-            rgb = cmap(t)[:, :3]
-            stops = [_hex(cmap(s)[:3]) for s in np.linspace(0, 1, BAR_STOPS)]
-            bar = {"title": "LED value", "lo": lo, "hi": hi, "stops": stops}
+            rgb = np.rint(cmap((colours - lo) / (hi - lo) if hi > lo else np.zeros_like(colours))[:, :3] * 255)
+            bar = {"title": "LED value", "lo": lo, "hi": hi,
+                   "stops": [_hex(cmap(t)[:3]) for t in np.linspace(0, 1, BAR_STOPS)]}
         else:
-            rgb = np.clip(f, 0, None)
-            if rgb.max() > 1:  # drive weights are in [0, 1]; anything else is shown relative to its maximum
-                rgb = rgb / rgb.max()
+            rgb = colours
             bar = {"title": DRIVE_BAR, "lo": 0, "hi": 255, "stops": ["#000000", "#ffffff"]}
-        frames.append({"name": str(name), "rgb": _b64(np.rint(rgb * 255).astype(np.uint8)), "bar": bar})
+        frames.append({"name": str(name), "rgb": _b64(rgb.astype(np.uint8)), "bar": bar})
     return frames
 
 
