@@ -11,8 +11,16 @@ import functools
 import os
 from pathlib import Path
 
-import numpy as np
-import pytest
+# One BLAS / OpenMP thread a test process, set before numpy and torch load their thread pools (they read it then),
+# and inherited by the processes the tests start (the CLI, the suite's workers, torchrun's). The tests run one
+# process per core (pytest-xdist) beside processes of their own, so the cores are always shared, and an OpenMP
+# thread that waits for a descheduled sibling spins on a core another process needs: two mini captures side by side
+# on two cores took 104 s with the libraries' default threads and 42 s with one (docs/performance.md, "CI").
+# A value already set is kept.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402 - after the thread count
+import pytest  # noqa: E402
 
 os.environ.setdefault("WARP_CACHE_PATH", str(Path(__file__).resolve().parents[1] / ".cache" / "warp"))
 
