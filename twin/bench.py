@@ -366,8 +366,8 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
     """Seconds for the whole capture plan's simulation on `device` (every photo of both views; no
     extrapolation), by stage, with the production code (twin.capture.runner.photos): pixel tracing, the
     render of every pattern, the sensor (exposure bracket and raw frames), the HDR merge, and the download
-    of the finished raw frames and HDR images to the host (files excluded: `hemicube capture` then packs,
-    compresses, checksums and writes them). `output`: then also the real
+    of the finished HDR images to the host (files excluded: `hemicube capture` then writes and checksums them;
+    with --raw it also downloads and packs the raw frames). `output`: then also the real
     `hemicube capture` into that folder, files written, timed whole. A warm-up on two rows of a camera
     comes first (on a cold Warp cache it is the kernels' compilation).
 
@@ -437,10 +437,10 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
         with stage("trace"):
             surfaces = {key: sims[key[0]].surfaces(key[1]) for key in need}
         for photo, raws, hdr, record in photos(rig, sims, patterns, plan, device, stage, frames=frames):
-            with stage("download"):  # what `hemicube capture` hands to its file writers
-                copies = host(0, raws, hdr["radiance"])
+            with stage("download"):  # what `hemicube capture` (without --raw) hands to its file writers
+                (radiance,) = host(0, hdr["radiance"])
             if checked is None:
-                checked = photo, record, [c.copy() for c in copies]
+                checked = photo, record, raws.numpy().copy(), radiance.copy()
     res["rays"] = {f"{k}/{c}": int(s.kind.shape[0]) for (k, c), s in surfaces.items()}
     res["seconds"] = dict(seconds)
     res["total_s_files_excluded"] = sum(v for k, v in seconds.items() if k != "warmup")
@@ -460,7 +460,7 @@ def bench_capture(rig_name="paper", device="cuda", sample="ramps", resolution=10
         checks.append(same_work(f"render_{kind}_{cam}", render_device(rig, cam, ours, w, device=device).numpy(),
                                 render_reference(rig, cam, ours, w, device=device), rtol=CAPTURE_RENDER_RTOL,
                                 atol=CAPTURE_RENDER_ATOL))
-    photo, record, (raws_host, rad_host) = checked
+    photo, record, raws_host, rad_host = checked
     ref = merge_hdr_numpy(list(raws_host), record["exposures_s"], rig.camera(photo.camera).sensor)
     checks.append(same_work("hdr_merge_first_photo", rad_host, ref.radiance, rtol=0.0))
 

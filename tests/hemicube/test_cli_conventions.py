@@ -296,6 +296,28 @@ def test_capture_many_samples_file_says_sample_resolution_with_the_old_key_kept_
         samples("sample_resolution = 0\n" + body)
 
 
+def test_raw_frames_are_written_on_request(tmp_path):
+    """`capture --raw` and SAMPLES.toml's `raw = true` (per sample or for all) keep the raw frames; off by default;
+    a `raw` that is not a boolean, like an unknown key, is refused in one line."""
+    from twin.capture.many import read_samples
+
+    parser = hemicube.cli.build_parser()
+    assert parser.parse_args(["capture", "-o", "x"]).raw is False
+    assert parser.parse_args(["capture", "-o", "x", "--raw"]).raw is True
+
+    def samples(text: str) -> list[dict]:
+        (tmp_path / "s.toml").write_text(text)
+        return read_samples(tmp_path / "s.toml")
+
+    body = '[[sample]]\nname = "ramps"\n[[sample]]\nname = "satin@5"\nraw = true\n'
+    assert [s["raw"] for s in samples(body)] == [False, True]
+    assert [s["raw"] for s in samples("raw = true\n" + body)] == [True, True]
+    with pytest.raises(ValueError, match=r"\[\[sample\]\] 1 \(ramps\): raw must be true or false"):
+        samples('[[sample]]\nname = "ramps"\nraw = "yes"\n')
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['raws'\]"):
+        samples('[[sample]]\nname = "ramps"\nraws = true\n')
+
+
 def test_a_missing_device_is_one_line_in_a_fresh_process(tmp_path):
     """As a user meets it: a new process, where Warp looks for CUDA for the first time and says so on its own; the
     command's stderr is still the one line (the Ray batch commands' --device is the cluster's: not checked here)."""

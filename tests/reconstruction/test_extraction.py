@@ -146,7 +146,7 @@ def test_bad_captures_are_refused(extracted, mini, tmp_path):
     with pytest.raises(CaptureError, match="not a capture folder"):
         reconstruct(tmp_path, tmp_path / "recon", progress=False)
     broken = tmp_path / "broken"
-    shutil.copytree(cap.dir, broken, ignore=shutil.ignore_patterns("raw", "ground_truth", ".lock"))
+    shutil.copytree(cap.dir, broken, ignore=shutil.ignore_patterns("ground_truth", ".lock"))
     (broken / "img00070_cam00.exr").unlink()
     with pytest.raises(CaptureError, match="img00070_cam00.exr: listed in the manifest but missing"):
         extract(CaptureSession.open(broken), mini, grid, _ExactAlignment(mini))

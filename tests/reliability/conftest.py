@@ -1,6 +1,6 @@
 """The reliability tests' capture: one small real capture of the mini rig a session (one frame an exposure, a 16^2
-sample; only its folder matters here), read by every test, and hard-linked copies of it for the tests that change a
-folder, so that a copy costs neither time nor space."""
+sample, its raw frames kept; only its folder matters here), read by every test, and hard-linked copies of it for
+the tests that change a folder, so that a copy costs neither time nor space."""
 from __future__ import annotations
 
 import hashlib
@@ -15,7 +15,7 @@ import hemicube.cli
 
 # `hemicube capture` as the session's capture was taken: run again on a copy, it resumes that copy
 CAPTURE_ARGS = ("capture", "--rig", "mini", "--sample", "ramps", "--seed", "1", "--frames", "1", "--sample-resolution",
-                "16", "--no-progress")
+                "16", "--raw", "--no-progress")
 
 
 def digest(root: Path) -> str:

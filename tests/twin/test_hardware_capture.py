@@ -1,7 +1,8 @@
 """`hemicube capture --backend hardware`: the same plan, session folder and resume as the simulator, through
 the LED controller's emulator (its own process, faults injected) and pylon's camera emulation (faults
-injected): the photos are byte-identical to `--backend sim`'s, and a damaged folder is resumed through the
-devices. (Resuming after SIGKILL at 20 random points: `hemicube bench resume`, docs/reliability.md.)"""
+injected): the photos are byte-identical to `--backend sim`'s, their raw frames (kept with --raw) too, and a
+damaged folder is resumed through the devices. (Resuming after SIGKILL at 20 random points: `hemicube bench resume`,
+docs/reliability.md.)"""
 from __future__ import annotations
 
 import json
@@ -38,10 +39,13 @@ def test_hardware_capture_with_faults_equals_the_simulator_and_resumes(validate_
     url, log = controller
     out = tmp_path / "hw"
     args = ARGS + ["--backend", "hardware", "--led", url, "--cameras", "emulated", "--camera-faults", CAMERA_FAULTS,
-                   "-o", str(out)]
+                   "--raw", "-o", str(out)]
     assert hemicube.cli.main(args) == 0
-    hw, sim = _manifest(out), _manifest(validate_dir / "capture")
-    assert hw["files"] == sim["files"]  # byte-identical photos, raw frames, patterns, rig and ground truth
+    hw, sim = _manifest(out), _manifest(validate_dir / "capture")  # the simulator's, without raw frames
+    raws = {rel for rel in hw["files"] if rel.startswith("raw/")}
+    n = frames_per_photo(DEFAULT_FRAMES)  # raw frames a photo
+    # byte-identical photos, merged from the raw frames, patterns, rig and ground truth
+    assert len(raws) == 196 * n and {k: v for k, v in hw["files"].items() if k not in raws} == sim["files"]
     report = check_capture(out, validate_dir / "capture")
     assert {k: v for k, v in report.items() if k != "brackets_retaken"} == {
         "photos": 196, "photos_planned": 196, "photos_lost": 0, "files_failing_checksum": 0,
@@ -49,21 +53,41 @@ def test_hardware_capture_with_faults_equals_the_simulator_and_resumes(validate_
         "photos_or_raw_frames_differing_from_the_simulator": 0, "photos_acknowledged_with_another_pattern": 0,
         "camera_frames_used_twice": 0}
     assert report["brackets_retaken"]  # the camera faults cost retakes
-    assert all(len(rec["camera_frames"]) == frames_per_photo(DEFAULT_FRAMES) for rec in hw["photos"].values())
+    assert all(len(rec["camera_frames"]) == n for rec in hw["photos"].values())
     assert sum(json.loads(line)["event"] == "fault" for line in log.read_text().splitlines()) > 0
+    _raw_frames_are_the_simulators(out, ["img00003_cam01", "img00129_cam00"])
 
     # resume: a damaged photo and a lost raw frame (of the secondary camera: its 64 patterns are rendered again,
-    # as a batch) are taken again through the devices, nothing else
+    # as a batch) are taken again through the devices, byte for byte, nothing else
     (out / "img00060_cam01.exr").write_bytes(b"damaged")
     (out / "raw" / "img00003_cam01_e1.BayerRG12p").unlink()
     mtimes = {rel: (out / rel).stat().st_mtime_ns for rel in hw["files"] if (out / rel).exists()}
     assert hemicube.cli.main(args) == 0
-    assert verify(out) == [] and _manifest(out)["files"] == sim["files"]
+    assert verify(out) == [] and _manifest(out)["files"] == hw["files"]
     redone = {rel for rel in mtimes if (out / rel).stat().st_mtime_ns != mtimes[rel]}
-    n = frames_per_photo(DEFAULT_FRAMES)  # raw frames a photo
     assert {r for r in redone if r.startswith(("img", "raw/"))} == {
         "img00060_cam01.exr", *(f"raw/img00060_cam01_e{j}.BayerRG12p" for j in range(n)),
         "img00003_cam01.exr", *(f"raw/img00003_cam01_e{j}.BayerRG12p" for j in range(n) if j != 1)}
+
+
+def _raw_frames_are_the_simulators(out: Path, stems: list[str]) -> None:
+    """The raw frames of these photos of the capture in `out` are those the simulator takes of them (here, in this
+    process: the folder it is compared with keeps none)."""
+    import numpy as np
+
+    import twin
+    from twin.capture.runner import SAMPLE_RESOLUTION, capture_header, open_backends, photos
+    from twin.capture.session import CaptureSession, photo_stem
+    from twin.materials.samples import load_sample
+
+    rig, session = twin.load_rig("mini"), CaptureSession.open(out)
+    _, patterns, plan = capture_header(rig, "ramps", seed=1)
+    todo = [p for p in plan if photo_stem(p.index, p.camera_index) in stems]
+    with open_backends(rig, load_sample("ramps", resolution=SAMPLE_RESOLUTION), "sim", 1, "cpu") as sims:
+        for photo, raws, _, _ in photos(rig, sims, patterns, todo, "cpu"):
+            kept = session.raw_frames(photo.index, photo.camera_index)
+            assert len(kept) == raws.shape[0] and all(np.array_equal(a, b) for a, b in zip(kept, raws.numpy()))
+    assert len(todo) == len(stems)
 
 
 def test_hardware_capture_errors(controller, tmp_path, capsys):

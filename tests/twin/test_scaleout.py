@@ -59,7 +59,7 @@ def test_capture_many_makes_verified_captures(batch):
     for name in o:
         assert "--- done in" in (d / "caps" / "logs" / f"{name}.log").read_text()
         s = CaptureSession.open(d / "caps" / name)
-        assert s.complete() and s.header["seed"] == 2 and s.header["resolution"] == 32
+        assert s.complete() and s.header["seed"] == 2 and s.header["resolution"] == 32 and not s.keeps_raw_frames
     assert "2 done, 0 skipped" in first.stdout
     again = _hemicube(d, "capture-many", "samples.toml", "-o", "caps")
     assert "0 done, 2 skipped" in again.stdout

@@ -13,7 +13,7 @@ import pytest
 
 import twin
 from hemicube.cli import main
-from twin.capture.plan import DEFAULT_FRAMES, CaptureError, Photo, frames_per_photo
+from twin.capture.plan import CaptureError, Photo
 from twin.capture.runner import capture
 from twin.capture.session import CaptureSession, photo_stem
 
@@ -33,9 +33,7 @@ def test_reader_gives_what_the_capture_wrote(validate_dir, mini):
     img = s.photo(129, 1)
     cam = mini.camera(list(mini.cameras)[1])
     assert img.shape == (cam.height, cam.width, 3) and img.dtype == np.float32
-    raws = s.raw_frames(129, 1)
-    assert len(raws) == frames_per_photo(DEFAULT_FRAMES)
-    assert all(r.shape == (cam.height, cam.width) and r.max() <= 4095 for r in raws)
+    assert s.photos[photo_stem(129, 1)]["raw_shape"] == [cam.height, cam.width]
     assert s.patterns().num_patterns >= 131 - 64 and s.has_ground_truth
     assert s.ground_truth_maps().resolution == 128 and s.pixel_texel(0).shape[-1] == 2
 
@@ -114,6 +112,26 @@ def test_resume_removes_what_a_killed_writer_left(tmp_path):
     assert CaptureSession.open(tmp_path / "c").verify() == []
 
 
+def test_raw_frames_are_written_only_where_the_capture_keeps_them(tmp_path):
+    """A header without `raw_frames` (every folder made before raw frames were optional) keeps them; one with
+    `raw_frames: false` (a capture without --raw) lists the HDR photo alone, the raw frames' shape still recorded.
+    Both verify, and a photo of either counts as taken on a resume (photo_done)."""
+    header = {"format": "hemicube-capture", "version": 1, "rig": "mini", "rig_digest": "x"}
+    photo = Photo(0, "primary", 0, "p", "sample")
+    raws = [np.full((4, 6), 7, np.uint16), np.full((4, 6), 9, np.uint16)]
+    for name, extra, files in (("kept", {}, ["raw/img00000_cam00_e0.BayerRG12p", "raw/img00000_cam00_e1.BayerRG12p",
+                                                 "img00000_cam00.exr"]),
+                               ("none", {"raw_frames": False}, ["img00000_cam00.exr"])):
+        with CaptureSession.create(tmp_path / name, {**header, **extra}) as s:
+            s.write_photo(photo, raws if not extra else None, np.ones((4, 6, 3), np.float32),
+                          {"exposures_s": [1e-3, 8e-3]})
+        s = CaptureSession.open(tmp_path / name)
+        assert s.photos["img00000_cam00"]["files"] == files and s.photos["img00000_cam00"]["raw_shape"] == [4, 6]
+        assert s.verify() == [] and s.photo_done(photo) and sorted(s.files) == sorted(files)
+        assert (tmp_path / name / "raw").exists() == s.keeps_raw_frames == (name == "kept")
+    assert [r.tolist() for r in CaptureSession.open(tmp_path / "kept").raw_frames(0, 0)] == [r.tolist() for r in raws]
+
+
 def test_open_refuses_what_is_not_a_capture(tmp_path):
     with pytest.raises(CaptureError, match="not a capture folder"):
         CaptureSession.open(tmp_path)
@@ -128,17 +146,26 @@ def test_open_refuses_what_is_not_a_capture(tmp_path):
 
 
 @pytest.mark.slow
-def test_raw_compare_finds_no_difference_in_a_capture_against_itself(validate_dir, tmp_path):
-    """twin.capture.raw_compare, the cross-machine comparison (docs/performance.md): a capture against itself
-    gives no differing row (a tampered frame cannot be read at all: its checksum fails)."""
+def test_a_capture_without_raw_frames_says_so(validate_dir, tmp_path):
+    """The default capture writes no raw frames and its manifest says so (raw_frames: false); asking it for them
+    (the reader, twin.capture.raw_compare) is one line that says how to get them. (A capture with --raw reads
+    them: tests/twin/test_capture.py.)"""
     from twin.capture import raw_compare
 
     cap = validate_dir / "capture"
-    raw_compare.digest(cap, tmp_path / "rows.npz")
-    raw_compare.rows(cap, tmp_path / "rows.npz", tmp_path / "diff.npz")
-    rep = raw_compare.report(cap, tmp_path / "diff.npz")
-    assert rep["frames"] == rep["frames_compared"] == rep["identical_frames"] > 500
-    assert rep["differing_pixels"] == 0 and rep["missing_frames"] == []
+    s = CaptureSession.open(cap)
+    assert s.header["raw_frames"] is False and not s.keeps_raw_frames
+    assert not (cap / "raw").exists() and not any(rel.startswith("raw/") for rel in s.files)
+    message = (f"{cap}: the capture was made without raw frames; capture again with --raw (the same seed gives the "
+               "same frames)")
+    for read in (lambda: s.raw_frames(129, 1), lambda: raw_compare.digest(cap, tmp_path / "rows.npz")):
+        with pytest.raises(ValueError) as e:
+            read()
+        assert str(e.value) == message
+    r = subprocess.run([sys.executable, "-m", "twin.capture.raw_compare", "digest", str(cap), str(tmp_path / "rows.npz")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and r.stderr == f"raw_compare: {message}\n", r.stderr
+    assert not (tmp_path / "rows.npz").exists()
 
 
 def test_photos_unsynced_and_a_torn_one_retaken(tmp_path, monkeypatch):

@@ -16,9 +16,9 @@ Raw formats (GenICam Pixel Format Naming Convention, PFNC 2.x)
         byte1 = (p0 >> 8) | ((p1 & 0x0F) << 4)
         byte2 = p1 >> 4
 
-    ``pack_bayer_rg12p`` / ``unpack_bayer_rg12p``. The width must be even so that no pair straddles
-    two rows. (This is NOT the older GigE Vision ``BayerRG12Packed`` layout, which stores the high
-    bits first; that one is not implemented.)
+    ``pack_bayer_rg12p`` / ``unpack_bayer_rg12p``; a frame's size, ``bayer_rg12p_bytes``. The width must be
+    even so that no pair straddles two rows. (This is NOT the older GigE Vision ``BayerRG12Packed`` layout,
+    which stores the high bits first; that one is not implemented.)
 
     The byte layouts do not depend on the CFA layout: the same functions write BayerGR12, BayerGB12p,
     ... data; ``pfnc_name`` gives the right name for a sensor's layout.
@@ -145,13 +145,18 @@ def pack_bayer_rg12p(raw: np.ndarray) -> bytes:
     return out.tobytes()
 
 
+def bayer_rg12p_bytes(height: int, width: int) -> int:
+    """The bytes of one (height, width) frame in BayerRG12p: 3 a pixel pair."""
+    return 3 * height * width // 2
+
+
 def unpack_bayer_rg12p(data, height: int, width: int) -> np.ndarray:
     """Inverse of `pack_bayer_rg12p`: bytes -> uint16 (H, W)."""
     height, width = _check_dims(height, width)
     if width % 2:
         raise ValueError(f"BayerRG12p needs an even width, got {width}")
     buf = _as_bytes(data)
-    need = 3 * height * width // 2
+    need = bayer_rg12p_bytes(height, width)
     if buf.nbytes != need:
         raise ValueError(f"BayerRG12p {height}x{width} needs {need} bytes, got {buf.nbytes}")
     b = np.frombuffer(buf, dtype=np.uint8).reshape(-1, 3).astype(np.uint16)

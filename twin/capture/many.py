@@ -8,6 +8,7 @@ SAMPLES.toml: top-level keys are defaults for every sample; each [[sample]] name
     seed = 1                     # the capture's seed (default 1, as `hemicube capture`)
     sample_resolution = 128      # the built-in samples' map resolution (default 128; `capture --sample-resolution`)
     patterns = "run/patterns.npz"  # learned patterns (a `hemicube train` run's); default: the rig's own
+    raw = true                   # also write the raw frames (default false; `capture --raw`)
     [[sample]]
     name = "satin"               # built-in name, NAME@SEED, or a folder of OpenSVBRDF maps
     [[sample]]
@@ -36,8 +37,8 @@ from twin.outputs import Kind, claim_output
 from .plan import DEFAULT_SEED
 from .session import CaptureError, CaptureSession
 
-KEYS = {"name", "rig", "seed", "sample_resolution", "patterns", "folder"}
-DEFAULTS = {"rig": "mini", "seed": DEFAULT_SEED, "sample_resolution": 128, "patterns": None}
+KEYS = {"name", "rig", "seed", "sample_resolution", "patterns", "raw", "folder"}
+DEFAULTS = {"rig": "mini", "seed": DEFAULT_SEED, "sample_resolution": 128, "patterns": None, "raw": False}
 # old key -> its new name: read for one version, with one line on stderr
 DEPRECATED_KEYS = {"resolution": "sample_resolution"}
 # OUT, resumed (twin.outputs): its batch.json names the samples file (reconstruct-many's names its captures)
@@ -91,6 +92,8 @@ def read_samples(path) -> list[dict]:
         if not isinstance(r, int) or isinstance(r, bool) or r < 1:
             raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): sample_resolution must be a positive "
                              "integer")
+        if not isinstance(s["raw"], bool):
+            raise ValueError(f"{path}: [[sample]] {i + 1} ({e['name']}): raw must be true or false")
         for k in ("name", "rig", "patterns"):  # a folder or file named relative to SAMPLES.toml
             v = s[k]
             if isinstance(v, str) and ("/" in v or k == "patterns") and not Path(v).is_absolute():
@@ -106,7 +109,7 @@ def read_samples(path) -> list[dict]:
     return out
 
 
-def capture_one(sample: str, rig: str, seed: int, resolution: int, patterns: str | None, output: str,
+def capture_one(sample: str, rig: str, seed: int, resolution: int, patterns: str | None, raw: bool, output: str,
                 device: str) -> dict:
     """A Ray task: run (or resume) one simulated capture; its photo count and the manifest's verdict."""
     import twin
@@ -117,7 +120,7 @@ def capture_one(sample: str, rig: str, seed: int, resolution: int, patterns: str
     if learned is not None:
         learned.check_rig(rig_obj)
     out = capture(rig_obj, sample, output, seed=seed, device=device, resolution=resolution, learned=learned,
-                  progress=True)  # to the job's log
+                  raw=raw, progress=True)  # to the job's log
     session = CaptureSession.open(out)
     if not session.complete(verify=False):  # the capture checksummed every file as it wrote it
         raise CaptureError(f"{out}: photos of the plan are missing after the capture")
@@ -144,14 +147,14 @@ def capture_many(samples_toml, output, device: str = "cpu", options: BatchOption
         (f"the {what} of [[sample]] {i + 1}", s[k]) for i, s in enumerate(samples)
         for k, what in (("name", "maps"), ("rig", "rig folder"), ("patterns", "pattern file"))])
     jobs = [Job(s["folder"], {"sample": s["name"], "rig": s["rig"], "seed": s["seed"],
-                              "resolution": s["sample_resolution"], "patterns": s["patterns"],
+                              "resolution": s["sample_resolution"], "patterns": s["patterns"], "raw": s["raw"],
                               "output": str(out / s["folder"]), "device": device})
             for s in samples]
 
     def finished(job: Job):
         """The job's result when its folder holds this very capture (the header capture() would write: rig,
-        sample, seed, resolution, patterns, plan), finished and verified; else None (the task resumes it, or
-        refuses a folder that holds another capture)."""
+        sample, seed, resolution, patterns, plan, raw frames), finished and verified; else None (the task resumes
+        it, or refuses a folder that holds another capture)."""
         import twin
         from twin.capture.runner import capture_header
 
@@ -162,7 +165,7 @@ def capture_many(samples_toml, output, device: str = "cpu", options: BatchOption
             return None
         try:
             header = capture_header(twin.load_rig(a["rig"]), a["sample"], seed=a["seed"], resolution=a["resolution"],
-                                    learned=_learned(a["patterns"]))[0]
+                                    learned=_learned(a["patterns"]), raw=a["raw"])[0]
         except (ValueError, OSError):  # a bad rig or pattern file: the task runs and reports it
             return None
         return _result(session) if session.holds(header) and session.complete() else None

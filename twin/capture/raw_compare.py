@@ -6,7 +6,8 @@ on a lent GPU), when only small files can travel between them.
     python -m twin.capture.raw_compare report CAPTURE diff.npz          pixel statistics against CAPTURE (JSON)
 
 `digest` runs where the first capture is, `rows` where the second is (its output holds only the rows that
-differ, so it stays small when the captures agree), `report` back where the first is.
+differ, so it stays small when the captures agree), `report` back where the first is. Both captures must keep their
+raw frames (`hemicube capture --raw`).
 """
 from __future__ import annotations
 
@@ -73,12 +74,17 @@ def report(capture, diff_file) -> dict:
 
 
 if __name__ == "__main__":
+    from twin.capture.plan import CaptureError
+
     cmd, *args = sys.argv[1:]
-    if cmd == "digest":
-        digest(*args)
-    elif cmd == "rows":
-        rows(*args)
-    elif cmd == "report":
-        print(json.dumps(report(*args), indent=2))
-    else:
-        sys.exit(__doc__)
+    try:
+        if cmd == "digest":
+            digest(*args)
+        elif cmd == "rows":
+            rows(*args)
+        elif cmd == "report":
+            print(json.dumps(report(*args), indent=2))
+        else:
+            sys.exit(__doc__)
+    except CaptureError as e:  # a capture without raw frames, a file failing its checksum: one line
+        sys.exit(f"raw_compare: {e}")

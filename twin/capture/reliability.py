@@ -34,7 +34,8 @@ from twin.capture.backends.faults import FAULT_KINDS
 from twin.capture.plan import DEFAULT_SEED, DeviceError
 
 SAMPLE, SEED, LEDS_MINI = "ramps", 1, 460
-CAPTURE_ARGS = ["capture", "--rig", "mini", "--sample", SAMPLE, "--seed", str(SEED), "--no-progress"]
+# the raw frames kept: the benchmarks compare every frame the devices delivered with the simulator's
+CAPTURE_ARGS = ["capture", "--rig", "mini", "--sample", SAMPLE, "--seed", str(SEED), "--raw", "--no-progress"]
 # the emulated controller's faults during the capture benchmarks: every kind, rarely
 CAPTURE_LED_FAULTS = "corrupt=0.002,drop=0.002,dup=0.002,delay=0.002,reset=0.002,stuck=0.002,flip=1e-5,delay_s=0.3"
 
@@ -112,7 +113,7 @@ def reference(workdir: Path) -> Path:
     """The simulator's capture that the hardware ones must equal (made once, resumed if need be)."""
     from twin.capture.runner import capture
 
-    return capture(load_rig("mini"), SAMPLE, Path(workdir) / "sim", seed=SEED, progress=False)
+    return capture(load_rig("mini"), SAMPLE, Path(workdir) / "sim", seed=SEED, progress=False, raw=True)
 
 
 def check_capture(out: Path, ref: Path) -> dict:
@@ -131,7 +132,7 @@ def check_capture(out: Path, ref: Path) -> dict:
         frames.setdefault(rec["camera"], []).extend((rec["camera_run"], *f) for f in rec.get("camera_frames", []))
         for reason in rec.get("retakes", []):
             retakes[reason] = retakes.get(reason, 0) + 1
-    photos = {f for rec in sim.photos.values() for f in rec["files"]}  # raw frames and HDR photos
+    photos = {f for rec in sim.photos.values() for f in rec["files"]}  # HDR photos, raw frames where ref kept them
     return {
         "photos": len(hw.photos), "photos_planned": len(hw.header["plan"]),
         "photos_lost": len(hw.header["plan"]) - len(hw.photos),
@@ -213,7 +214,7 @@ def bench_camera_faults(spec: str = "failed=0.02,disconnect=0.005,stray=0.02", s
     out = workdir / "camera_faults"
     t0 = time.perf_counter()
     try:
-        capture(load_rig("mini"), SAMPLE, out, seed=SEED, backend="hardware", progress=False,
+        capture(load_rig("mini"), SAMPLE, out, seed=SEED, backend="hardware", progress=False, raw=True,
                 devices={"led": url, "cameras": "emulated", "camera_faults": faults})
     finally:
         proc.send_signal(signal.SIGTERM)

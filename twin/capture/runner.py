@@ -6,9 +6,10 @@ photo (meter, exposure bracket, raw frames, HDR merge) on the backend's device; 
 implausible (twin.capture.plausibility) is taken again, then refused by name; a photo leaves the device
 only when `capture` writes its files. `hemicube bench capture` times the same generator.
 
-Files: a finished photo is copied to the host (`HostCopies`: on CUDA into reused page-locked buffers, the
-fast transfer) and handed to one of WRITERS threads (packing, EXR compression and checksums release the
-GIL), so the device takes the next photos while earlier ones are written.
+Files: a finished photo (its raw frames too with `raw`) is copied to the host (`HostCopies`: on CUDA into reused
+page-locked buffers, the fast transfer) and handed to one of WRITERS threads (packing, EXR writing and checksums
+release the GIL), so the device takes the next photos while earlier ones are written. `capture_bytes` gives the
+bytes its photos write, from the plan alone.
 """
 from __future__ import annotations
 
@@ -22,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from twin.capture.plan import (BRACKET, BRACKET_RATIO, DEFAULT_FRAMES, CaptureError, DeviceError, build_patterns,
-                               check_frames, exposure_frames, frame_id, paper_plan, photo_exposures)
+                               check_frames, exposure_frames, frame_id, frames_per_photo, paper_plan, photo_exposures)
 from twin.capture.plausibility import PHOTO_ATTEMPTS, judge_bracket
-from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession, photo_stem
+from twin.capture.session import FORMAT_NAME, FORMAT_VERSION, CaptureSession, photo_bytes, photo_stem
 
 WRITERS = max(1, min(8, os.cpu_count() or 1))
 
@@ -146,8 +147,8 @@ SAMPLE_RESOLUTION = 128  # texels per side of a built-in sample's maps when a ca
 
 
 def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", resolution: int = SAMPLE_RESOLUTION,
-                   learned=None, cameras: str | None = None, truth=None,
-                   frames: int = DEFAULT_FRAMES) -> tuple[dict, object, list]:
+                   learned=None, cameras: str | None = None, truth=None, frames: int = DEFAULT_FRAMES,
+                   raw: bool = False) -> tuple[dict, object, list]:
     """(the manifest header, the pattern set, the plan) of the capture these arguments describe: what a capture
     folder must hold to be resumed (or, finished, to be reused) for them."""
     patterns = build_patterns(rig, learned)
@@ -166,14 +167,29 @@ def capture_header(rig, sample: str, *, seed: int = 0, backend: str = "sim", res
     # each exposure's frames (the shortest's repeated more: twin.capture.plan.SHORTEST_REPEAT); a folder made
     # before that has no such key, so it is not resumed with frames taken another way
     header["exposure_frames"] = exposure_frames(frames)
+    if not raw:  # absent: the raw frames are written, as in every folder made before they were optional
+        header["raw_frames"] = False
     return header, patterns, plan
+
+
+def capture_bytes(rig, *, raw: bool = False, frames: int = DEFAULT_FRAMES, learned=None) -> dict:
+    """The bytes the photos of `capture(rig, ..., frames=frames, learned=learned, raw=raw)` write, from the plan
+    without rendering: {"hdr": the HDR EXRs, "raw": the raw frames (0 without `raw`), "total"}. The rest of the
+    folder (manifest, patterns, rig, ground truth) is not counted."""
+    sizes = [photo_bytes(rig.camera(p.camera).height, rig.camera(p.camera).width, frames_per_photo(frames))
+             for p in paper_plan(rig, build_patterns(rig, learned))]
+    hdr = sum(h for h, _ in sizes)
+    raws = sum(r for _, r in sizes) if raw else 0
+    return {"hdr": hdr, "raw": raws, "total": hdr + raws}
 
 
 def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", device: str = "cpu",
             resolution: int = SAMPLE_RESOLUTION, learned=None, progress: bool = True, devices: dict | None = None,
-            truth=None, frames: int = DEFAULT_FRAMES, break_lock: bool = False) -> Path:
+            truth=None, frames: int = DEFAULT_FRAMES, break_lock: bool = False, raw: bool = False) -> Path:
     """Run the plan into `output` (resuming a killed run there), each exposure taken `frames` times, the shortest
-    twice as often (the HDR merge averages them; twin.capture.plan.bracket_frames). Returns the folder. `devices`
+    twice as often (the HDR merge averages them; twin.capture.plan.bracket_frames). Returns the folder. `raw`: write
+    every photo's raw frames too (nothing reconstruction reads; with four frames an exposure, three times the bytes:
+    `capture_bytes`); a folder is resumed only with the choice it was made with. `devices`
     are the hardware backend's options (twin.capture.backends.hardware.open_hardware: led, cameras, ...). `truth`
     (simulator only): the rig the twin renders with, the true device, while the folder records `rig`, its
     calibration, as a real device's capture records the calibrated rig (docs/calibration.md); it must be
@@ -196,7 +212,7 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
     maps = load_sample(sample, resolution=resolution) if devices.get("cameras") != "basler" else None
     header, patterns, plan = capture_header(rig, sample, seed=seed, backend=backend, resolution=resolution,
                                             learned=learned, cameras=devices.get("cameras"), truth=truth,
-                                            frames=frames)
+                                            frames=frames, raw=raw)
     with open_backends(rig, maps, backend, seed, device, devices, truth) as sims, \
             CaptureSession.create(output, header, break_lock) as session:
         session.write_setup(patterns, rig, maps)
@@ -212,8 +228,12 @@ def capture(rig, sample: str, output, *, seed: int = 0, backend: str = "sim", de
                 k = n % len(slots)
                 if slots[k] is not None:
                     slots[k].result()
-                raws_h, rad_h = host(k, raws, hdr["radiance"])
-                slots[k] = pool.submit(session.write_photo, photo, list(raws_h), rad_h, record)
+                if raw:
+                    raws_h, rad_h = host(k, raws, hdr["radiance"])
+                    raws_h = list(raws_h)
+                else:  # the raw frames stay on the device
+                    raws_h, (rad_h,) = None, host(k, hdr["radiance"])
+                slots[k] = pool.submit(session.write_photo, photo, raws_h, rad_h, record)
                 slots[k].add_done_callback(lambda f: bar.update(1))
             for f in slots:
                 if f is not None:

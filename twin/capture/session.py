@@ -6,7 +6,8 @@ reconstruction and validation read it through `CaptureSession.open`; no other mo
     patterns.npz                every pattern used (twin.capture.patterns format)
     rig/                        the rig folder (the capture is self-contained)
     img{k:05d}_cam{c:02d}.exr   merged HDR radiance, linear float32 RGB, W m^-2 sr^-1
-    raw/img{k:05d}_cam{c:02d}_e{j}.BayerRG12p   raw frames, GenICam PFNC BayerRG12p (12-bit packed)
+    raw/img{k:05d}_cam{c:02d}_e{j}.BayerRG12p   raw frames, GenICam PFNC BayerRG12p (12-bit packed); only in a
+                                capture made with --raw (the header's raw_frames is false in one made without)
     ground_truth/maps/          the sample's true SVBRDF maps (OpenSVBRDF contract; a twin capture only)
     ground_truth/pixel_texel_cam{c:02d}.npy   (H, W, 2) float32 true texel (row, col) of each pixel, NaN off it
     .lock                       the one writer's lock while a capture runs (twin.lock)
@@ -65,14 +66,27 @@ def _pixel_texel_file(camera_index: int) -> str:
     return f"ground_truth/pixel_texel_cam{camera_index:02d}.npy"
 
 
+def photo_bytes(height: int, width: int, raw_frames: int) -> tuple[int, int]:
+    """(the HDR EXR's bytes, its `raw_frames` raw frames' bytes) of one photo of a (height, width) camera, as
+    `CaptureSession.write_photo` writes them."""
+    from twin.camera.bayer import bayer_rg12p_bytes
+    from twin.materials.exr import rgb_exr_bytes
+
+    return rgb_exr_bytes(height, width), raw_frames * bayer_rg12p_bytes(height, width)
+
+
 BODY = ("photos", "files")  # a manifest's keys besides its header's (CaptureSession.save)
 
 
 def _differing(old: dict, header: dict) -> list[str]:
     """The header keys whose value a manifest `old` does not share: those of `header`, and the optional ones
-    (`simulated_with`, `cameras`, `frames_per_exposure`: absent unless set) that only `old` has."""
+    (`simulated_with`, `cameras`, `frames_per_exposure`, `raw_frames`: absent unless set) that only `old` has."""
     keys = list(header) + [k for k in old if k not in header and k not in BODY]
     return [k for k in keys if old.get(k) != header.get(k)]
+
+
+def _keeps_raw_frames(header: dict) -> bool:
+    return header.get("raw_frames", True) is not False
 
 
 def _read_manifest(directory: Path) -> dict:
@@ -147,6 +161,12 @@ class CaptureSession:
         except CaptureError as e:
             raise CaptureError(f"{self.dir}: manifest's frames_per_exposure {frames!r}: {e}") from None
 
+    @property
+    def keeps_raw_frames(self) -> bool:
+        """Whether the capture writes its photos' raw frames: the header's `raw_frames`, false in a capture made
+        without --raw (absent: true, as in every folder made before raw frames were optional)."""
+        return _keeps_raw_frames(self.header)
+
     def shown_patterns(self, camera_index: int = 0) -> dict[int, str]:
         """Photo index -> the name of the pattern it was taken under (the manifest's plan), for one camera."""
         return {p["index"]: p["pattern"] for p in self.header.get("plan", []) if p["camera_index"] == camera_index}
@@ -188,7 +208,7 @@ class CaptureSession:
 
     def verify(self) -> list[str]:
         """Listed files whose checksum does not match (empty when all verify), checked by VERIFIERS threads (sha256
-        and file reads release the GIL; a paper-rig capture is ~20 GB)."""
+        and file reads release the GIL; a paper-rig capture is 14 GB, 43 GB with its raw frames)."""
         rels = list(self.files)
         with ThreadPoolExecutor(VERIFIERS) as pool:
             return [rel for rel, ok in zip(rels, pool.map(self.verified, rels)) if not ok]
@@ -217,6 +237,9 @@ class CaptureSession:
         """The (H, W) uint16 raw frames of photo k of camera c, in bracket order."""
         from twin.camera.bayer import unpack_bayer_rg12p
 
+        if not self.keeps_raw_frames:
+            raise CaptureError(f"{self.dir}: the capture was made without raw frames; capture again with --raw (the "
+                               "same seed gives the same frames)")
         rec = self.photos.get(photo_stem(index, camera_index))
         if rec is None:
             raise CaptureError(f"{self.dir}: photo {photo_stem(index, camera_index)} was not taken")
@@ -265,6 +288,10 @@ class CaptureSession:
         if (d / MANIFEST).exists():
             old = _read_manifest(d)
             mismatch = _differing(old, header)
+            if "raw_frames" in mismatch:  # the one option a user is likely to forget on a resume: name it
+                kept = "with" if _keeps_raw_frames(old) else "without"
+                raise CaptureError(f"{d} holds a different capture ({', '.join(mismatch)} differ: it was made {kept} "
+                                   f"--raw); resume it {kept} --raw or choose another folder")
             if mismatch:
                 raise CaptureError(f"{d} holds a different capture ({', '.join(mismatch)} differ); "
                                    "choose another folder")
@@ -354,18 +381,20 @@ class CaptureSession:
         rec = self.photos.get(photo_stem(photo.index, photo.camera_index))
         return rec is not None and all(self.verified(r) for r in rec["files"])
 
-    def write_photo(self, photo: Photo, raws: list[np.ndarray], radiance: np.ndarray, record: dict) -> None:
-        """One photo: its raw frames (BayerRG12p), the merged HDR EXR, then its manifest record. Thread-safe:
-        photos may be written concurrently (each lists itself in the manifest once its files are complete)."""
+    def write_photo(self, photo: Photo, raws: list[np.ndarray] | None, radiance: np.ndarray, record: dict) -> None:
+        """One photo: its raw frames `raws` (BayerRG12p; only where the capture keeps them, keeps_raw_frames: None
+        may be passed otherwise), the merged HDR EXR, then its manifest record, whose raw_shape is the photo's pixel
+        grid (the frames' too: the merge demosaics them to it). Thread-safe: photos may be written concurrently
+        (each lists itself in the manifest once its files are complete)."""
         from twin.camera.bayer import pack_bayer_rg12p
         from twin.materials.exr import write_rgb_exr
 
         i, c = photo.index, photo.camera_index
         done = {}
         # not fsynced (twin.atomic, durable=False): a resumed capture verifies a photo's files before it counts as
-        # taken (photo_done), and syncing the paper rig's 196 photos (20 GB) adds about a sixth to a 1024^2 capture's
-        # time (docs/performance.md); the manifest that lists them is fsynced
-        for j, raw in enumerate(raws):
+        # taken (photo_done), and syncing the paper rig's 196 photos (14 GB, 43 GB with raw frames) adds about a
+        # sixth to a 1024^2 capture's time (docs/performance.md); the manifest that lists them is fsynced
+        for j, raw in enumerate(raws if self.keeps_raw_frames else ()):
             data = pack_bayer_rg12p(raw)
             write_bytes_atomic(self._path(_raw_file(i, c, j)), data, durable=False)
             done[_raw_file(i, c, j)] = hashlib.sha256(data).hexdigest()
@@ -376,7 +405,7 @@ class CaptureSession:
         done[_photo_file(i, c)] = file_sha256(path)
         with self._mutex:
             self.files.update(done)
-            self.photos[photo_stem(i, c)] = {**record, "raw_shape": list(raws[0].shape), "files": list(done)}
+            self.photos[photo_stem(i, c)] = {**record, "raw_shape": list(radiance.shape[:2]), "files": list(done)}
             self.save()
 
     def save(self) -> None:

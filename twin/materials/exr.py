@@ -2,6 +2,7 @@
 
     write_exr(path, {"R": a, "G": b, ...}, half=False, compression="zip", attributes=None) -> Path
     write_rgb_exr(path, rgb (H, W, 3), **kw) -> Path                  channels "R", "G", "B"
+    rgb_exr_bytes(height, width) -> int                                the file size, float32, uncompressed
     read_exr(path, channels=None, shape=None) -> {name: float32 (H, W)}
     read_rgb_exr(path, shape=None) -> float32 (H, W, 3)                in R, G, B order
     read_exr_attributes(path) -> {name: value}                         custom header attributes only
@@ -30,8 +31,10 @@ Conventions
 """
 from __future__ import annotations
 
+import functools
 import os
 import re
+import tempfile
 from pathlib import Path
 from typing import Iterable, Mapping
 
@@ -189,6 +192,21 @@ def write_rgb_exr(path: str | os.PathLike, rgb, **kw) -> Path:
     if a.ndim != 3 or a.shape[2] != 3:
         raise ExrError(f"{path}: expected an (H, W, 3) RGB array, got shape {a.shape}")
     return write_exr(path, {c: a[..., k] for k, c in enumerate(RGB)}, **kw)
+
+
+def rgb_exr_bytes(height: int, width: int) -> int:
+    """The bytes of the file `write_rgb_exr` writes for a (height, width) float32 image with compression="none" and
+    no attributes: the header, then one scanline a chunk, each an 8-byte entry of the line offset table and an
+    8-byte chunk header (row, byte count) before its three float32 channels."""
+    return _rgb_exr_header_bytes() + height * (8 + 8 + len(RGB) * 4 * width)
+
+
+@functools.cache
+def _rgb_exr_header_bytes() -> int:
+    """The header's bytes, measured on a one-pixel file: the OpenEXR library chooses the attributes it writes."""
+    with tempfile.TemporaryDirectory() as d:
+        path = write_rgb_exr(Path(d) / "one.exr", np.zeros((1, 1, 3), np.float32), compression="none", durable=False)
+        return path.stat().st_size - (8 + 8 + len(RGB) * 4)
 
 
 # --- reading -----------------------------------------------------------------------------------------
