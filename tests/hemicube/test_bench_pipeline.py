@@ -109,7 +109,10 @@ def test_bench_e2e_byte_identity_names_a_differing_file(e2e, tmp_path):
 
 def test_bench_train_scaling_tiny(capsys):
     rc, res, _ = _run(["bench", "train-scaling", "--tiny"], capsys)
-    assert rc == 0 and res["passed"] and res["global_batch"] == 16
+    # a failed launch's log tail in the message: what a CI log needs to tell a code failure from the machine's
+    assert rc == 0 and res["passed"], ([c for c in res["checks"] if not c["passed"]],
+                                       {n: r.get("log_tail") for n, r in res["processes"].items()})
+    assert res["global_batch"] == 16
     _software(res)
     assert set(res["processes"]) == {"1", "2"} and res["processes"]["2"]["backend"] == "gloo"
     for n, r in res["processes"].items():
