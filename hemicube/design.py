@@ -35,7 +35,9 @@ from __future__ import annotations
 
 import csv
 import json
+import shlex
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -369,18 +371,52 @@ COLUMNS = ("design", "rig", "family", "patterns", "leds_on", "train_on", "test_o
            "capture_s", "within_budget", "duty_peak", "duty_mean_max")
 
 
+def _command(paths, output, device, maps, jobs, maps_resolution, rig) -> str:
+    """The command line that runs this evaluation (a study's record names it, whichever way it was started)."""
+    args = ["hemicube", "design", "evaluate", *map(str, paths), "-o", str(output)]
+    args += ["--device", str(device)] if str(device) != "cpu" else []
+    args += ["--maps", *map(str, maps)] if maps else []
+    args += ["--maps-resolution", str(maps_resolution)] if maps_resolution is not None else []
+    args += ["--jobs", str(jobs)] if jobs != 1 else []
+    args += ["--rig", str(rig)] if rig is not None else []
+    return shlex.join(args)
+
+
+def _study_path(study) -> Path | None:
+    """`--study`'s file, checked before any work: a .json name, and no file there but an earlier record of a study
+    (which a study run again replaces)."""
+    if study is None:
+        return None
+    from twin.design.study import is_study
+
+    p = Path(study)
+    if p.suffix != ".json":
+        raise ValueError(f"--study: {p} must name a .json file")
+    if p.exists() and not is_study(p):
+        raise ValueError(f"--study: {p} exists and is not a study record; choose another name")
+    if not p.parent.is_dir():
+        raise ValueError(f"--study: folder {p.parent} does not exist")
+    return p
+
+
 def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = False, progress: bool = True,
-             maps=(), jobs: int = 1, maps_resolution: int | None = None, rig=None) -> int:
+             maps=(), jobs: int = 1, maps_resolution: int | None = None, rig=None, study=None) -> int:
     """Load every design (all checked before any work), score each, write the table and plots, print it. With
     jobs > 1 the training runs go first, `jobs` at a time in separate processes. `maps` are scored on a
     `maps_resolution`^2 texture grid (None: the pipeline's). `rig` (a built-in rig's name or a rig folder) overrides
     every design file's `rig`; each file's layout changes and camera moves apply on top of it, its name is kept,
-    and the table's `rig` column says which rig each design was scored on."""
+    and the table's `rig` column says which rig each design was scored on. `study`: also write the study's record
+    there (twin.design.study: designs.json's numbers with the command, commit, versions, device and time; an
+    earlier record there is replaced)."""
     from twin.atomic import write_bytes_atomic
     from twin.design.design_file import load_design
+    from twin.design.study import study_record
     from twin.design.verdict import compare_all
     from twin.materials.samples import load_sample
 
+    t0 = time.perf_counter()
+    study_path = _study_path(study)
+    command = _command(paths, output, device, maps, jobs, maps_resolution, rig)
     rig = override_rig(rig)
     designs = [load_design(p, rig) for p in paths]
     for name in maps:
@@ -408,9 +444,15 @@ def evaluate(paths: list[str], output, device: str = "cpu", as_json: bool = Fals
     table = [{k: r[k] for k in columns} for r in rows]
     extra = ("heldout_eq3_per_seed", "heldout_curve_per_seed") + (("maps_per_sample",) if maps else ())
     verdicts = compare_all(rows)
-    write_bytes_atomic(out / "designs.json", json.dumps(
-        {"designs": [{**t, **{k: r[k] for k in extra}} for t, r in zip(table, rows)], "verdicts": verdicts,
-         "how": HOW, **({"trained_by": trained_by} if trained_by else {})}, indent=1).encode())
+    result = {"designs": [{**t, **{k: r[k] for k in extra}} for t, r in zip(table, rows)], "verdicts": verdicts,
+              "how": HOW, **({"trained_by": trained_by} if trained_by else {})}
+    write_bytes_atomic(out / "designs.json", json.dumps(result, indent=1).encode())
+    if study_path is not None:
+        from reconstruction.bench.common import device_name, software
+
+        record = study_record(result, name=study_path.stem, command=command, software=software(),
+                              device=device_name(device), seconds=time.perf_counter() - t0)
+        write_bytes_atomic(study_path, json.dumps(record, indent=1).encode())
     with open(out / "designs.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=columns)
         w.writeheader()
@@ -462,8 +504,11 @@ def register(sub) -> None:
     e.add_argument("--rig", default=None, metavar="NAME|DIR", help="score every design on this rig instead of the "
                    "one its file names: a built-in rig (paper, mini) or a rig folder; each file's layout changes "
                    "and camera moves still apply, and its name is kept (default: each file's rig)")
+    e.add_argument("--study", default=None, metavar="FILE.json", help="also write the study's record to FILE.json "
+                   "(e.g. docs/designs/NAME.json): the table, per-seed losses and curves with the command, commit, "
+                   "versions, device and time; an earlier record there is replaced (default: none)")
     e.set_defaults(func=lambda a: evaluate(a.designs, a.output, a.device, a.json, not a.no_progress, a.maps,
-                                           a.jobs, a.maps_resolution, a.rig))
+                                           a.jobs, a.maps_resolution, a.rig, a.study))
     o = ds.add_parser("optimise", help="train a design's patterns and network on its training distribution "
                       "(uniform GGX, the material suite, or folders of maps): patterns to capture with, a network "
                       "to reconstruct with")

@@ -5,6 +5,8 @@
 #     text_representation:
 #       extension: .py
 #       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.7
 #   kernelspec:
 #     display_name: Python 3 (ipykernel)
 #     language: python
@@ -65,9 +67,8 @@ paths = [str(work / f"{n}.toml") for n in designs]
 # upload; `duty_peak` / `duty_mean_max` the LED drive.
 
 # %%
-evaluate(paths, work / "out", progress=False)
+evaluate(paths, work / "out", progress=False, study=work / "study.json")
 result = json.loads((work / "out" / "designs.json").read_text())
-rows = {r["design"]: r for r in result["designs"]}
 
 # %% [markdown]
 # ## The plots: test loss with each seed, and the SNR of every measurement
@@ -93,14 +94,30 @@ for name in designs:
 # predictor that ignores the measurements: a network near it has not learned to use its photos) and every held-out
 # curve moved less than 1 % over the last 20 % of its steps. Otherwise it is **not resolved**, with every reason.
 # With this notebook's tiny budget expect "not resolved": `docs/designer.md` has comparisons trained long enough.
+#
+#
+# `--study FILE.json` (here `study=`) records a comparison as a study: the same numbers with the command, the
+# commit, the versions, the device and the time. What follows is generated from that record, the verdicts computed
+# again from its per-seed losses and curves (`twin/design/study.py`).
 
 # %%
-for r in rows.values():
-    print(f"{r['design']}: test loss {r['heldout_eq3']:.3f}, {r['blind_ratio_min']:.2f}x below the blind "
-          f"predictor (worst seed), held-out curve moved {100 * r['tail_change_max']:.1f} % over the last 20 % "
-          f"of its steps; capture {r['capture_s']:.1f} s")
-for v in result["verdicts"]:
-    print(v["text"])
+from twin.design.study import load_study, study_lines
+
+print("\n".join(study_lines(load_study(work / "study.json"))))
 print("how each figure was computed:")
 for k, v in result["how"].items():
     print(f"  {k}: {v}")
+
+# %% [markdown]
+# ## The studies recorded in `docs/designs/`
+#
+# Each `docs/designs/*.json` is one study's record, written by `hemicube design evaluate ... --study` with budgets
+# long enough to mean something; their verdicts, computed the same way:
+
+# %%
+import hemicube
+
+recorded = sorted((Path(hemicube.__file__).resolve().parents[1] / "docs" / "designs").glob("*.json"))
+for path in recorded:
+    print("\n".join(study_lines(load_study(path))), end="\n\n")
+print(f"{len(recorded)} recorded stud{'y' if len(recorded) == 1 else 'ies'} in docs/designs/")

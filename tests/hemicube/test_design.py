@@ -17,6 +17,7 @@ from twin.capture.backends.led_emulator import spawn
 from twin.capture.backends.led_host import LedController
 from twin.design.costs import acquisition_time, led_duty, upload_cost
 from twin.design.design_file import DesignError, load_design
+from twin.design.study import load_study, study_lines
 
 DESIGNS = Path(__file__).resolve().parents[2] / "docs" / "designs"
 HEAD = 'format = "hemicube-design"\nversion = 1\nrig = "mini"\n'
@@ -192,7 +193,7 @@ def test_design_evaluate_two_designs(tmp_path, capsys):
     out = tmp_path / "out"
     # --jobs 2: the six training runs in two worker processes first, then the scoring finds them finished
     rc = hemicube.cli.main(["design", "evaluate", str(tmp_path / "learned-4.toml"), str(tmp_path / "hadamard-4.toml"),
-                            "-o", str(out), "--no-progress", "--jobs", "2"])
+                            "-o", str(out), "--no-progress", "--jobs", "2", "--study", str(tmp_path / "s.json")])
     assert rc == 0
     printed = capsys.readouterr().out
     assert "learned-4" in printed and "hadamard-4" in printed and "heldout_eq3" in printed
@@ -217,6 +218,13 @@ def test_design_evaluate_two_designs(tmp_path, capsys):
         assert [s for s, _ in row["heldout_curve_per_seed"][0]] == list(range(9))
     (verdict,) = res["verdicts"]
     assert verdict["verdict"] == "not resolved" and verdict["why"] and verdict["text"] in printed
+    # the study's record: designs.json's numbers with where they came from, its verdict computed again from them
+    study = load_study(tmp_path / "s.json")
+    assert json.dumps(study["designs"]) == json.dumps(res["designs"]) and study["study"] == "s" and study["device"] == "cpu"
+    assert study["command"] == (f"hemicube design evaluate {tmp_path / 'learned-4.toml'} {tmp_path / 'hadamard-4.toml'} "
+                                f"-o {out} --jobs 2")
+    assert set(study["software"]) >= {"git_commit", "torch", "warp"} and study["seconds"] > 0
+    assert f"  {verdict['text']}" in study_lines(study)
     rows = list(csv.DictReader(open(out / "designs.csv")))
     assert [r["design"] for r in rows] == ["learned-4", "hadamard-4"]
     for f in ("heldout.png", "snr.png", "learned-4/patterns.png", "hadamard-4/patterns.png"):
@@ -231,6 +239,28 @@ def test_design_evaluate_two_designs(tmp_path, capsys):
                             "--maps", "wood", "--maps-resolution", "2"])
     assert rc == 2 and not (tmp_path / "o3").exists()
     assert "maps resolution must be an integer >= 4 texels per side, got 2" in capsys.readouterr().err
+
+
+def test_a_study_record_is_written_only_where_one_may_be(tmp_path, capsys):
+    """--study names a .json file that is absent or an earlier study's record (which a study run again replaces);
+    anything else stops the command before any work, in one line. A record is read back checked."""
+    from hemicube.design import _study_path
+
+    design = _write(tmp_path, 'name = "l"\n[patterns]\nfamily = "learned"\ncount = 2\n')
+    (tmp_path / "notes.json").write_text('{"mine": 1}')
+    for bad, words in (("notes.json", "exists and is not a study record"), ("s.txt", "must name a .json file"),
+                       ("nowhere/s.json", "does not exist")):
+        rc = hemicube.cli.main(["design", "evaluate", str(design), "-o", str(tmp_path / "o"), "--study",
+                                str(tmp_path / bad)])
+        err = capsys.readouterr().err
+        assert rc == 2 and words in err and err.strip().count("\n") == 0 and not (tmp_path / "o").exists()
+    assert json.loads((tmp_path / "notes.json").read_text()) == {"mine": 1}
+    (tmp_path / "old.json").write_text(json.dumps({"format": "hemicube-design-study", "version": 1}))
+    assert _study_path(tmp_path / "old.json") == tmp_path / "old.json"
+    with pytest.raises(ValueError, match="needs its designs' rows"):
+        load_study(tmp_path / "old.json")
+    with pytest.raises(ValueError, match="not a design study record"):
+        load_study(tmp_path / "notes.json")
 
 
 def test_design_evaluate_maps_through_the_twin(tmp_path, capsys):
