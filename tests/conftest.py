@@ -14,9 +14,8 @@ from pathlib import Path
 # One BLAS / OpenMP thread a test process, set before numpy and torch load their thread pools (they read it then),
 # and inherited by the processes the tests start (the CLI, the suite's workers, torchrun's). The tests run one
 # process per core (pytest-xdist) beside processes of their own, so the cores are always shared, and an OpenMP
-# thread that waits for a descheduled sibling spins on a core another process needs: two mini captures side by side
-# on two cores took 104 s with the libraries' default threads and 42 s with one (docs/performance.md, "CI").
-# A value already set is kept.
+# thread that waits for a descheduled sibling spins on a core another process needs (measured in docs/performance.md,
+# "CI"). A value already set is kept.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402 - after the thread count
